@@ -1,0 +1,1 @@
+//! lpvid-host: the std companion of the `lpvid` core.
