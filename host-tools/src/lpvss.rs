@@ -1,0 +1,169 @@
+//! The LPV state-space model in numbers (DESIGN.md section 5, type `lpv-ss`), its free-run
+//! simulation and its one-step-ahead predictor:
+//! x_{k+1} = sum_i mu_k^(i) (A^(i) x_k + B^(i) u_k + K^(i) e_k),  y_k = C(mu_k) x_k + D(mu_k) u_k + e_k.
+
+use nalgebra::{DMatrix, DVector};
+
+/// Signals as the identification sees them: one row per sample.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Signals {
+    /// Inputs, N x r.
+    pub u: DMatrix<f64>,
+    /// Outputs, N x l.
+    pub y: DMatrix<f64>,
+    /// Scheduling signals p (without the affine 1), N x s.
+    pub p: DMatrix<f64>,
+}
+
+impl Signals {
+    /// Number of samples.
+    pub fn len(&self) -> usize {
+        self.y.nrows()
+    }
+    /// True when there is no sample.
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+    /// mu_k = [1, p_k] as a vector.
+    pub fn mu(&self, k: usize) -> DVector<f64> {
+        let s = self.p.ncols();
+        DVector::from_fn(s + 1, |i, _| if i == 0 { 1.0 } else { self.p[(k, i - 1)] })
+    }
+    /// Samples `range` only.
+    pub fn slice(&self, start: usize, len: usize) -> Signals {
+        Signals {
+            u: self.u.rows(start, len).into_owned(),
+            y: self.y.rows(start, len).into_owned(),
+            p: self.p.rows(start, len).into_owned(),
+        }
+    }
+}
+
+/// An LPV state-space model with affine scheduling dependence (m = s + 1 local models).
+/// `c` and `d` hold one matrix (parameter-independent output equation) or m matrices.
+#[derive(Debug, Clone, PartialEq)]
+pub struct LpvSs {
+    /// A^(1..m), n x n each.
+    pub a: Vec<DMatrix<f64>>,
+    /// B^(1..m), n x r each.
+    pub b: Vec<DMatrix<f64>>,
+    /// K^(1..m), n x l each.
+    pub k: Vec<DMatrix<f64>>,
+    /// C or C^(1..m), l x n each.
+    pub c: Vec<DMatrix<f64>>,
+    /// D or D^(1..m), l x r each.
+    pub d: Vec<DMatrix<f64>>,
+}
+
+/// Sum_i mu_i M_i (a single matrix is taken as parameter-independent).
+pub fn scheduled(mats: &[DMatrix<f64>], mu: &DVector<f64>) -> DMatrix<f64> {
+    if mats.len() == 1 {
+        return mats[0].clone();
+    }
+    let mut out = DMatrix::zeros(mats[0].nrows(), mats[0].ncols());
+    for (m, w) in mats.iter().zip(mu.iter()) {
+        out += m * *w;
+    }
+    out
+}
+
+impl LpvSs {
+    /// State dimension n.
+    pub fn n(&self) -> usize {
+        self.a[0].nrows()
+    }
+    /// Number of inputs r.
+    pub fn r(&self) -> usize {
+        self.b[0].ncols()
+    }
+    /// Number of outputs l.
+    pub fn l(&self) -> usize {
+        self.c[0].nrows()
+    }
+    /// Number of local models m.
+    pub fn m(&self) -> usize {
+        self.a.len()
+    }
+
+    /// Check that the matrix shapes agree with each other.
+    pub fn check(&self) -> Result<(), String> {
+        let (n, r, l, m) = (self.n(), self.r(), self.l(), self.m());
+        let ok = |v: &[DMatrix<f64>], rows, cols, counts: &[usize]| {
+            counts.contains(&v.len()) && v.iter().all(|x| x.nrows() == rows && x.ncols() == cols)
+        };
+        if !ok(&self.a, n, n, &[m]) {
+            return Err(format!("A must be {m} matrices of {n}x{n}"));
+        }
+        if !ok(&self.b, n, r, &[m]) {
+            return Err(format!("B must be {m} matrices of {n}x{r}"));
+        }
+        if !ok(&self.k, n, l, &[m]) {
+            return Err(format!("K must be {m} matrices of {n}x{l}"));
+        }
+        if !ok(&self.c, l, n, &[1, m]) {
+            return Err(format!("C must be one or {m} matrices of {l}x{n}"));
+        }
+        if !ok(&self.d, l, r, &[1, m]) {
+            return Err(format!("D must be one or {m} matrices of {l}x{r}"));
+        }
+        Ok(())
+    }
+
+    /// Free-run simulation from x0 = 0 driven by the inputs and scheduling of `sig` (its
+    /// outputs are ignored), with optional innovation `e` (N x l) added. Returns N x l.
+    pub fn simulate(&self, sig: &Signals, e: Option<&DMatrix<f64>>) -> DMatrix<f64> {
+        self.run(sig, e, false)
+    }
+
+    /// One-step-ahead predictor: the innovation is replaced by y_k - yhat_k using the
+    /// measured outputs of `sig`. Returns N x l predictions.
+    pub fn predict(&self, sig: &Signals) -> DMatrix<f64> {
+        self.run(sig, None, true)
+    }
+
+    fn run(&self, sig: &Signals, e: Option<&DMatrix<f64>>, predictor: bool) -> DMatrix<f64> {
+        let n_samples = sig.len();
+        let (n, l) = (self.n(), self.l());
+        let mut x = DVector::<f64>::zeros(n);
+        let mut out = DMatrix::<f64>::zeros(n_samples, l);
+        for k in 0..n_samples {
+            let mu = sig.mu(k);
+            let u = sig.u.row(k).transpose();
+            let c = scheduled(&self.c, &mu);
+            let d = scheduled(&self.d, &mu);
+            let yhat = &c * &x + &d * &u;
+            let ek = if predictor {
+                sig.y.row(k).transpose() - &yhat
+            } else if let Some(e) = e {
+                e.row(k).transpose()
+            } else {
+                DVector::zeros(l)
+            };
+            let yk = if predictor { yhat.clone() } else { &yhat + &ek };
+            out.set_row(k, &yk.transpose());
+            let mut xn = DVector::<f64>::zeros(n);
+            for i in 0..self.m() {
+                let w = mu[i];
+                if w != 0.0 {
+                    xn += (&self.a[i] * &x + &self.b[i] * &u + &self.k[i] * &ek) * w;
+                }
+            }
+            x = xn;
+            if !x.iter().all(|v| v.is_finite()) || x.amax() > 1e150 {
+                // diverged: the rest of the output is meaningless; mark it so metrics give 0
+                for kk in k + 1..n_samples {
+                    for j in 0..l {
+                        out[(kk, j)] = f64::NAN;
+                    }
+                }
+                break;
+            }
+        }
+        out
+    }
+
+    /// Frozen-scheduling matrix A(mu) = sum_i mu_i A^(i).
+    pub fn a_at(&self, mu: &DVector<f64>) -> DMatrix<f64> {
+        scheduled(&self.a, mu)
+    }
+}

@@ -1,0 +1,89 @@
+//! Fit measures of the papers (DESIGN.md section 5): VAF = 100 max{0, 1 - var(y - yhat)/var(y)}
+//! and BFR = 100 max{0, 1 - ||y - yhat|| / ||y - mean(y)||}, per output. A diverged or
+//! non-finite prediction scores 0 (BENCHMARKS.md: count diverged runs, do not drop them).
+
+use nalgebra::DMatrix;
+
+fn variance(v: &[f64]) -> f64 {
+    let n = v.len() as f64;
+    let mean = v.iter().sum::<f64>() / n;
+    v.iter().map(|x| (x - mean) * (x - mean)).sum::<f64>() / n
+}
+
+/// VAF in percent of one output.
+pub fn vaf(y: &[f64], yhat: &[f64]) -> f64 {
+    if y.is_empty() || yhat.iter().any(|v| !v.is_finite()) {
+        return 0.0;
+    }
+    let err: Vec<f64> = y.iter().zip(yhat).map(|(a, b)| a - b).collect();
+    let vy = variance(y);
+    if vy <= 0.0 {
+        return 0.0;
+    }
+    100.0 * (1.0 - variance(&err) / vy).max(0.0)
+}
+
+/// BFR in percent of one output.
+pub fn bfr(y: &[f64], yhat: &[f64]) -> f64 {
+    if y.is_empty() || yhat.iter().any(|v| !v.is_finite()) {
+        return 0.0;
+    }
+    let mean = y.iter().sum::<f64>() / y.len() as f64;
+    let num: f64 = y.iter().zip(yhat).map(|(a, b)| (a - b) * (a - b)).sum::<f64>().sqrt();
+    let den: f64 = y.iter().map(|a| (a - mean) * (a - mean)).sum::<f64>().sqrt();
+    if den <= 0.0 {
+        return 0.0;
+    }
+    100.0 * (1.0 - num / den).max(0.0)
+}
+
+/// Per-output VAF of the columns of `y` vs `yhat` (N x l), skipping the first `skip` rows.
+pub fn vaf_per_output(y: &DMatrix<f64>, yhat: &DMatrix<f64>, skip: usize) -> Vec<f64> {
+    per_output(y, yhat, skip, vaf)
+}
+
+/// Per-output BFR, as [`vaf_per_output`].
+pub fn bfr_per_output(y: &DMatrix<f64>, yhat: &DMatrix<f64>, skip: usize) -> Vec<f64> {
+    per_output(y, yhat, skip, bfr)
+}
+
+fn per_output(
+    y: &DMatrix<f64>,
+    yhat: &DMatrix<f64>,
+    skip: usize,
+    f: fn(&[f64], &[f64]) -> f64,
+) -> Vec<f64> {
+    (0..y.ncols())
+        .map(|j| {
+            let a: Vec<f64> = y.column(j).iter().skip(skip).copied().collect();
+            let b: Vec<f64> = yhat.column(j).iter().skip(skip).copied().collect();
+            f(&a, &b)
+        })
+        .collect()
+}
+
+/// Mean of a slice (0 for an empty one).
+pub fn mean(v: &[f64]) -> f64 {
+    if v.is_empty() {
+        0.0
+    } else {
+        v.iter().sum::<f64>() / v.len() as f64
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    #[test]
+    fn vaf_bfr_values() {
+        let y = [1.0, 2.0, 3.0, 4.0];
+        assert_eq!(vaf(&y, &y), 100.0);
+        assert_eq!(bfr(&y, &y), 100.0);
+        let yh = [1.5, 2.5, 3.5, 4.5]; // constant offset: VAF ignores it, BFR does not
+        assert!((vaf(&y, &yh) - 100.0).abs() < 1e-12);
+        let expect = 100.0 * (1.0 - (4.0f64 * 0.25).sqrt() / 5.0f64.sqrt());
+        assert!((bfr(&y, &yh) - expect).abs() < 1e-12);
+        assert_eq!(vaf(&y, &[0.0, 0.0, f64::NAN, 0.0]), 0.0);
+        assert_eq!(vaf(&y, &[-10.0, 10.0, -10.0, 10.0]), 0.0);
+    }
+}

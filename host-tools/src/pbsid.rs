@@ -1,0 +1,815 @@
+//! LPV-PBSID_opt (kernel paper, Algorithms 1 and 2): regression (13) from the core's
+//! statistics (primal) or in the dual/kernel form (19)-(22) when the regressor outgrows the
+//! data, Gamma^p K^p Z by eq. (14) or eq. (25), SVD (15), state (16), then the system
+//! matrices by least squares (section 4.3).
+//!
+//! Signals are scaled internally (inputs and outputs by their standard deviation, each
+//! scheduling signal centred and scaled — an exact affine re-parametrisation of mu) and the
+//! model is returned in original units.
+
+use lpvid::kernel::dual_kernel;
+use lpvid::window::write_pbsid_regressor;
+use lpvid::{packed_len, Gram, PbsidDims, Samples, Slab};
+use nalgebra::{DMatrix, DVector};
+
+use crate::linalg::{mean_std, min_norm_from_normal, sym_eig};
+use crate::lpvss::{LpvSs, Signals};
+
+/// Regularisation of problem (13).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum Reg {
+    /// Minimum-norm least squares (eq. (18)).
+    None,
+    /// Tikhonov (ridge) with the parameter chosen by generalised cross-validation.
+    TikhonovGcv,
+    /// Tikhonov with a given parameter (relative to the largest eigenvalue of the Gram).
+    Tikhonov(f64),
+}
+
+impl std::str::FromStr for Reg {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        match s {
+            "none" => Ok(Reg::None),
+            "tikhonov-gcv" => Ok(Reg::TikhonovGcv),
+            other => Err(format!(
+                "unknown regularisation '{other}' (expected none or tikhonov-gcv)"
+            )),
+        }
+    }
+}
+
+/// Model order: given, or chosen from the singular-value gap.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum Order {
+    /// Largest gap in the singular values of Gamma^p K^p Z.
+    Auto,
+    /// Given n.
+    Fixed(usize),
+}
+
+impl std::str::FromStr for Order {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        if s == "auto" {
+            return Ok(Order::Auto);
+        }
+        match s.parse::<usize>() {
+            Ok(n) if n > 0 => Ok(Order::Fixed(n)),
+            _ => Err(format!("order must be a positive integer or 'auto', got '{s}'")),
+        }
+    }
+}
+
+/// Which exact form of problem (13) to solve.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Solver {
+    /// The cheaper of the two, by an operation count.
+    Auto,
+    /// Normal equations from the core's second-moment statistics (q x q).
+    Primal,
+    /// Dual (kernel) form with the kernels of Theorem 10 (N x N), never forming Z.
+    Dual,
+}
+
+impl Solver {
+    /// Name used in reports.
+    pub fn name(&self) -> &'static str {
+        match self {
+            Solver::Auto => "auto",
+            Solver::Primal => "primal",
+            Solver::Dual => "kernel",
+        }
+    }
+}
+
+/// Settings of an LPV-PBSID_opt fit.
+#[derive(Debug, Clone)]
+pub struct PbsidOptions {
+    /// Past window p.
+    pub past: usize,
+    /// Model order.
+    pub order: Order,
+    /// Regularisation.
+    pub reg: Reg,
+    /// Estimate the feedthrough D (otherwise D = 0).
+    pub feedthrough: bool,
+    /// Primal, dual or automatic.
+    pub solver: Solver,
+    /// Largest order `Order::Auto` may choose.
+    pub max_order: usize,
+    /// Future window f <= p: the number of row blocks of Gamma^f K^p Z used for the SVD
+    /// (the paper uses f = p; a shorter future drops the most truncated rows).
+    pub future: Option<usize>,
+}
+
+impl PbsidOptions {
+    /// Defaults for past window `p`: automatic order, no regularisation, D estimated.
+    pub fn new(past: usize) -> Self {
+        PbsidOptions {
+            past,
+            order: Order::Auto,
+            reg: Reg::None,
+            feedthrough: true,
+            solver: Solver::Auto,
+            max_order: 20,
+            future: None,
+        }
+    }
+}
+
+/// Internal scaling: u' = u / su, y' = y / sy, p' = (p - pc) / ps.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Scaling {
+    /// Input scales.
+    pub u: Vec<f64>,
+    /// Output scales.
+    pub y: Vec<f64>,
+    /// Scheduling centres.
+    pub p_center: Vec<f64>,
+    /// Scheduling scales.
+    pub p_scale: Vec<f64>,
+}
+
+/// The result of a fit, with what a user needs to judge it.
+#[derive(Debug, Clone)]
+pub struct PbsidFit {
+    /// The identified model, original units.
+    pub model: LpvSs,
+    /// Singular values of Gamma^p K^p Z (eq. (15)), scaled units, descending.
+    pub singular_values: Vec<f64>,
+    /// The chosen order.
+    pub order: usize,
+    /// Why that order.
+    pub order_reason: String,
+    /// The Tikhonov parameter used (relative to the largest Gram eigenvalue), if any.
+    pub lambda: Option<f64>,
+    /// Effective number of parameters per output at that lambda.
+    pub dof: f64,
+    /// Which form of (13) was solved.
+    pub solver: Solver,
+    /// Why that form.
+    pub solver_reason: String,
+    /// Regressor length q.
+    pub q: usize,
+    /// Number of windows (regression rows) N - p.
+    pub windows: usize,
+    /// The scaling used.
+    pub scaling: Scaling,
+}
+
+/// A fit that could not be made, with the reason in words.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+#[error("{0}")]
+pub struct FitError(pub String);
+
+impl From<lpvid::Error> for FitError {
+    fn from(e: lpvid::Error) -> Self {
+        FitError(e.to_string())
+    }
+}
+
+impl From<String> for FitError {
+    fn from(e: String) -> Self {
+        FitError(e)
+    }
+}
+
+/// Scale the signals and lay them out as the core's sample rows [u', y', mu'].
+fn scale(sig: &Signals) -> Result<(Scaling, Vec<f64>), FitError> {
+    let (n, r, l, s) = (sig.len(), sig.u.ncols(), sig.y.ncols(), sig.p.ncols());
+    let mut sc = Scaling {
+        u: vec![1.0; r],
+        y: vec![1.0; l],
+        p_center: vec![0.0; s],
+        p_scale: vec![1.0; s],
+    };
+    for j in 0..r {
+        let (_, sd) = mean_std(sig.u.column(j).iter().copied());
+        if !(sd > 0.0) {
+            return Err(FitError(format!(
+                "input u{} is constant: it carries no information and makes the regression rank deficient",
+                j + 1
+            )));
+        }
+        sc.u[j] = sd;
+    }
+    for j in 0..l {
+        let (_, sd) = mean_std(sig.y.column(j).iter().copied());
+        if !(sd > 0.0) {
+            return Err(FitError(format!("output y{} is constant", j + 1)));
+        }
+        sc.y[j] = sd;
+    }
+    for j in 0..s {
+        let (mean, sd) = mean_std(sig.p.column(j).iter().copied());
+        if !(sd > 0.0) {
+            return Err(FitError(format!(
+                "scheduling p{} is constant: it is indistinguishable from the affine term",
+                j + 1
+            )));
+        }
+        // Scale only: centring would move the first local model A^(1), whose powers
+        // build Gamma^p in eq. (14), away from p = 0 and break the truncation structure.
+        let _ = mean;
+        sc.p_scale[j] = sd;
+    }
+    let w = r + l + s + 1;
+    let mut rows = vec![0.0; n * w];
+    for k in 0..n {
+        let row = &mut rows[k * w..(k + 1) * w];
+        for j in 0..r {
+            row[j] = sig.u[(k, j)] / sc.u[j];
+        }
+        for j in 0..l {
+            row[r + j] = sig.y[(k, j)] / sc.y[j];
+        }
+        row[r + l] = 1.0;
+        for j in 0..s {
+            row[r + l + 1 + j] = (sig.p[(k, j)] - sc.p_center[j]) / sc.p_scale[j];
+        }
+    }
+    Ok((sc, rows))
+}
+
+/// Spectrum of a ridge problem in the form shared by the primal and the dual: eigenvalues
+/// lambda_i of the Gram (equal nonzero eigenvalues either way), the energy c_i of the
+/// targets along each (dual coordinates), the total target energy and the row count. GCV
+/// computed from this is the same number whichever form was solved.
+struct Spectrum {
+    vals: Vec<f64>,
+    energy: Vec<f64>,
+    total: f64,
+    rows: f64,
+}
+
+impl Spectrum {
+    /// Residual sum of squares and effective degrees of freedom at ridge parameter `lam`
+    /// (lam = 0: minimum norm with eigenvalues below `cut` dropped).
+    fn rss_dof(&self, lam: f64, cut: f64) -> (f64, f64) {
+        let (rss, deficit) = self.rss_deficit(lam, cut);
+        (rss, self.rows - deficit)
+    }
+
+    /// RSS and rows - dof, each computed without cancellation: the residual factor of
+    /// component i is lam / (lambda_i + lam), and dropped components count fully.
+    fn rss_deficit(&self, lam: f64, cut: f64) -> (f64, f64) {
+        // energy outside the Gram's range (zero in the dual); clamp the cancellation error
+        let mut rss = (self.total - self.energy.iter().sum::<f64>()).max(0.0);
+        let mut deficit = self.rows;
+        for (&v, &c) in self.vals.iter().zip(&self.energy) {
+            if v <= cut {
+                rss += c;
+                continue;
+            }
+            let g = lam / (v + lam);
+            rss += c * g * g;
+            deficit -= 1.0 - g;
+        }
+        (rss.max(0.0), deficit.max(0.0))
+    }
+
+    /// GCV(lam) = rows * RSS / (rows - dof)^2.
+    fn gcv(&self, lam: f64, cut: f64) -> f64 {
+        let (rss, deficit) = self.rss_deficit(lam, cut);
+        if deficit <= 0.0 {
+            return f64::INFINITY;
+        }
+        self.rows * rss / (deficit * deficit)
+    }
+
+    /// Ridge parameter minimising GCV: a log grid over 14 decades below the largest
+    /// eigenvalue, refined by golden-section search in log(lam).
+    fn gcv_lambda(&self, cut: f64) -> f64 {
+        let vmax = self.vals.iter().copied().fold(0.0, f64::max).max(1e-300);
+        let f = |e: f64| self.gcv(vmax * 10f64.powf(e), cut);
+        let (lo, hi, step) = (-14.0, 1.0, 0.25);
+        let mut best = (lo, f(lo));
+        let mut e = lo;
+        while e <= hi {
+            let g = f(e);
+            if std::env::var("LPVID_GCV").is_ok() {
+                eprintln!("gcv 1e{e:.2}: {g:.6e} {:?}", self.rss_deficit(vmax * 10f64.powf(e), cut));
+            }
+            if g < best.1 {
+                best = (e, g);
+            }
+            e += step;
+        }
+        let (mut a, mut b) = (best.0 - step, best.0 + step);
+        let phi = 0.5 * (5f64.sqrt() - 1.0);
+        let mut c = b - phi * (b - a);
+        let mut d = a + phi * (b - a);
+        let (mut fc, mut fd) = (f(c), f(d));
+        for _ in 0..40 {
+            if fc < fd {
+                b = d;
+                d = c;
+                fd = fc;
+                c = b - phi * (b - a);
+                fc = f(c);
+            } else {
+                a = c;
+                c = d;
+                fc = fd;
+                d = a + phi * (b - a);
+                fd = f(d);
+            }
+        }
+        let e = 0.5 * (a + b);
+        let e = if f(e) <= best.1 { e } else { best.0 };
+        vmax * 10f64.powf(e)
+    }
+}
+
+/// Relative eigenvalue cut-off defining the numerical rank of a Gram matrix.
+const RANK_TOL: f64 = 1e-11;
+
+/// Pick lambda for the chosen regularisation; returns (lambda, dof, cut).
+fn choose_lambda(reg: Reg, spec: &Spectrum) -> (f64, f64, f64) {
+    let vmax = spec.vals.iter().copied().fold(0.0, f64::max);
+    let cut = vmax * RANK_TOL;
+    let lam = match reg {
+        Reg::None => 0.0,
+        Reg::TikhonovGcv => spec.gcv_lambda(cut),
+        Reg::Tikhonov(rel) => rel * vmax,
+    };
+    let (_, dof) = spec.rss_dof(lam, cut);
+    (lam, dof, cut)
+}
+
+/// Filter factor applied to component i: 1/(v + lam), or 0 below the rank cut-off.
+fn filter(v: f64, lam: f64, cut: f64) -> f64 {
+    if v <= cut {
+        0.0
+    } else {
+        1.0 / (v + lam)
+    }
+}
+
+/// Gamma^p K^p of eq. (14) from the estimate of C K^p (l x q): row block i, column block j
+/// (j >= i) is C (A~^(1))^{i-1} L_{p-j+1}, the leading m^{p-j+1}(r+l) columns of block
+/// (j - i + 1) of C K^p (Definitions 2 and 4); blocks with j < i are zero.
+pub fn gamma_k(dims: &PbsidDims, f: usize, ck: &DMatrix<f64>) -> DMatrix<f64> {
+    let (p, l) = (dims.p, dims.l);
+    let q = ck.ncols();
+    let mut m = DMatrix::zeros(f * l, q);
+    for i in 1..=f {
+        for j in i..=p {
+            let len = dims.block_len(j);
+            let dst = dims.block_offset(j);
+            let src = dims.block_offset(j - i + 1);
+            m.view_mut(((i - 1) * l, dst), (l, len))
+                .copy_from(&ck.view((0, src), (l, len)));
+        }
+    }
+    m
+}
+
+/// Order from the singular values: the largest ratio sigma_n / sigma_{n+1} (the gap of
+/// section 4.3), n in 1..=max_n.
+pub fn select_order(sv: &[f64], max_n: usize) -> (usize, String) {
+    let floor = sv.first().copied().unwrap_or(0.0) * 1e-13;
+    let upto = max_n.min(sv.len().saturating_sub(1)).max(1);
+    let mut ratios: Vec<(usize, f64)> = (1..=upto)
+        .filter(|&n| n < sv.len())
+        .map(|n| (n, sv[n - 1].max(floor) / sv[n].max(floor)))
+        .collect();
+    if ratios.is_empty() {
+        return (1, "only one singular value".into());
+    }
+    ratios.sort_by(|a, b| b.1.total_cmp(&a.1));
+    let (n, g) = ratios[0];
+    let reason = match ratios.get(1) {
+        Some(&(n2, g2)) => format!(
+            "largest singular-value gap after sigma_{n}: sigma_{n}/sigma_{} = {g:.1} (next largest {g2:.1} after sigma_{n2})",
+            n + 1
+        ),
+        None => format!("gap sigma_{n}/sigma_{} = {g:.1}", n + 1),
+    };
+    (n, reason)
+}
+
+/// Identify an LPV state-space model with LPV-PBSID_opt.
+pub fn fit(sig: &Signals, opts: &PbsidOptions) -> Result<PbsidFit, FitError> {
+    let (n_samples, r, l, s) = (sig.len(), sig.u.ncols(), sig.y.ncols(), sig.p.ncols());
+    let dims = PbsidDims::new(r, l, s, opts.past)?;
+    let p = dims.p;
+    let m = dims.m();
+    let min_samples = p + 3;
+    if n_samples < min_samples {
+        return Err(FitError(format!(
+            "{n_samples} samples, but a past window of {p} needs at least {min_samples} (and many more for a useful fit)"
+        )));
+    }
+    let windows = n_samples - p;
+    let q = dims.q()?;
+    let r_ft = if opts.feedthrough { r } else { 0 };
+    let (scaling, rows) = scale(sig)?;
+    let slab = Slab::new(&rows, r, l, m)?;
+
+    // The cheaper exact form: operation counts of building + decomposing each.
+    let qf = (q + r_ft) as f64;
+    let nb = windows as f64;
+    let primal_cost = nb * qf * qf / 2.0 + 10.0 * qf * qf * qf;
+    let dual_cost = nb * nb * (p * p) as f64 + 10.0 * nb * nb * nb;
+    let (solver, solver_reason) = match opts.solver {
+        Solver::Primal => (Solver::Primal, "primal form requested".to_string()),
+        Solver::Dual => (Solver::Dual, "kernel form requested".to_string()),
+        Solver::Auto => {
+            if primal_cost <= dual_cost {
+                (
+                    Solver::Primal,
+                    format!("primal: q = {} regressors for {windows} windows", q + r_ft),
+                )
+            } else {
+                (
+                    Solver::Dual,
+                    format!(
+                        "kernel: q = {} regressors exceed what {windows} windows make cheaper in the dual",
+                        q + r_ft
+                    ),
+                )
+            }
+        }
+    };
+    if solver == Solver::Primal && q > 20_000 {
+        return Err(FitError(format!(
+            "the primal form needs a {q} x {q} Gram matrix; use the kernel form (--kernel) or a smaller past window"
+        )));
+    }
+    if solver == Solver::Dual && windows > 20_000 {
+        return Err(FitError(format!(
+            "the kernel form needs a {windows} x {windows} kernel matrix; use the primal form or fewer samples"
+        )));
+    }
+
+    let (gkz, lambda, dof) = match solver {
+        Solver::Dual => dual_gamma_kz(&dims, &slab, windows, opts)?,
+        _ => primal_gamma_kz(&dims, &slab, windows, opts)?,
+    };
+    let (sv, x) = gkz;
+    let max_n = opts.max_order.min(sv.len()).min(windows / 2).max(1);
+    let (order, order_reason) = match opts.order {
+        Order::Fixed(n) => {
+            if n > sv.len() {
+                return Err(FitError(format!(
+                    "order {n} exceeds p*l = {} singular values: increase the past window",
+                    sv.len()
+                )));
+            }
+            (n, format!("order {n} given"))
+        }
+        Order::Auto => select_order(&sv, max_n),
+    };
+    let states = x.rows(0, order).into_owned();
+    let scaled = realize(&dims, &slab, &states, opts.feedthrough)?;
+    let model = unscale(&scaled, &scaling);
+    let lambda_rel = lambda.map(|(lam, vmax)| if vmax > 0.0 { lam / vmax } else { 0.0 });
+    Ok(PbsidFit {
+        model,
+        singular_values: sv,
+        order,
+        order_reason,
+        lambda: lambda_rel,
+        dof,
+        solver,
+        solver_reason,
+        q,
+        windows,
+        scaling,
+    })
+}
+
+/// (singular values, U^T Gamma K Z rows = candidate states), (lambda, lambda_max), dof.
+type GammaKz = ((Vec<f64>, DMatrix<f64>), Option<(f64, f64)>, f64);
+
+/// SVD of Gamma^p K^p Z (eq. (15)) through the eigendecomposition of its Gram
+/// (Gamma K Z)(Gamma K Z)^T, which both forms can build. Returns the singular values and
+/// the left singular vectors.
+fn svd_left(w: &DMatrix<f64>) -> Result<(Vec<f64>, DMatrix<f64>), FitError> {
+    let (vals, vecs) = sym_eig(w)?;
+    let sv = vals.iter().map(|v| v.max(0.0).sqrt()).collect();
+    Ok((sv, vecs))
+}
+
+/// Primal path: the core's statistics of w_k = [z_k^p; u_{k+p}; y_{k+p}], regression (13)
+/// from them, Gamma^p K^p by eq. (14), and the states x_{k+p} = U_n^T Gamma^p K^p z_k^p
+/// (eq. (16): Sigma_n V = U_n^T Gamma K Z).
+fn primal_gamma_kz(
+    dims: &PbsidDims,
+    slab: &Slab<'_, f64>,
+    windows: usize,
+    opts: &PbsidOptions,
+) -> Result<GammaKz, FitError> {
+    let (p, r, l) = (dims.p, dims.r, dims.l);
+    let q = dims.q()?;
+    let d = dims.stat_len()?;
+    let mut gram = Gram::new(d, vec![0.0; packed_len(d)])?;
+    const BATCH: usize = 16;
+    let mut buf = vec![0.0; BATCH * d];
+    let mut k = 0;
+    while k < windows {
+        let nb = BATCH.min(windows - k);
+        for b in 0..nb {
+            let row = &mut buf[b * d..(b + 1) * d];
+            write_window_row(dims, slab, k + b, row);
+        }
+        gram.update_batch(&buf[..nb * d], nb)?;
+        k += nb;
+    }
+    let mut dense = vec![0.0; d * d];
+    gram.write_dense(&mut dense)?;
+    let s_all = DMatrix::from_row_slice(d, d, &dense);
+    let r_ft = if opts.feedthrough { r } else { 0 };
+    let qf = q + r_ft;
+    let s_ff = s_all.view((0, 0), (qf, qf)).into_owned();
+    let s_fy = s_all.view((0, q + r), (qf, l)).into_owned();
+    let syy: f64 = (0..l).map(|j| s_all[(q + r + j, q + r + j)]).sum();
+    let (vals, vecs) = sym_eig(&s_ff)?;
+    let b = vecs.transpose() * &s_fy; // qf x l
+    let energy: Vec<f64> = (0..qf)
+        .map(|i| {
+            if vals[i] > 0.0 {
+                b.row(i).norm_squared() / vals[i]
+            } else {
+                0.0
+            }
+        })
+        .collect();
+    let spec = Spectrum {
+        vals: vals.clone(),
+        energy,
+        total: syy,
+        rows: windows as f64,
+    };
+    let (lam, dof, cut) = choose_lambda(opts.reg, &spec);
+    if std::env::var("LPVID_DEBUG").is_ok() { let (rss, _) = spec.rss_dof(lam, cut); eprintln!("primal rel rss {:.3e} dof {dof:.1}", rss / spec.total); }
+    let mut scaled_b = b;
+    for i in 0..qf {
+        let f = filter(vals[i], lam, cut);
+        scaled_b.row_mut(i).scale_mut(f);
+    }
+    let theta = (vecs * scaled_b).transpose(); // l x qf
+    let ck = theta.columns(0, q).into_owned();
+    let f = future(dims, opts)?;
+    let gk = gamma_k(dims, f, &ck);
+    let s_zz = s_all.view((0, 0), (q, q));
+    let w = &gk * s_zz * gk.transpose();
+    let (sv, u) = svd_left(&w)?;
+    let t = u.transpose() * &gk; // (p l) x q, rows ordered by singular value
+    let mut x = DMatrix::zeros(f * l, windows);
+    let mut z = vec![0.0; q];
+    for k in 0..windows {
+        write_pbsid_regressor(dims, slab, k, &mut z);
+        let zv = DVector::from_column_slice(&z);
+        x.set_column(k, &(&t * zv));
+    }
+    let vmax = vals.first().copied().unwrap_or(0.0);
+    let lambda = match opts.reg {
+        Reg::None => None,
+        _ => Some((lam, vmax)),
+    };
+    Ok(((sv, x), lambda, dof))
+}
+
+/// The future window f (default p), checked.
+fn future(dims: &PbsidDims, opts: &PbsidOptions) -> Result<usize, FitError> {
+    let f = opts.future.unwrap_or(dims.p);
+    if f == 0 || f > dims.p {
+        return Err(FitError(format!(
+            "future window {f} must be between 1 and the past window {}",
+            dims.p
+        )));
+    }
+    Ok(f)
+}
+
+/// The row w_k = [z_k^p; u_{k+p}; y_{k+p}] of window k (samples k..k+p of the slab).
+fn write_window_row(dims: &PbsidDims, slab: &Slab<'_, f64>, k: usize, row: &mut [f64]) {
+    let q = row.len() - dims.r - dims.l;
+    write_pbsid_regressor(dims, slab, k, &mut row[..q]);
+    row[q..q + dims.r].copy_from_slice(slab.u(k + dims.p));
+    row[q + dims.r..].copy_from_slice(slab.y(k + dims.p));
+}
+
+/// Dual path (Algorithm 2): kernel Z^T Z + U^T U by Theorem 10, alpha from (19)-(21)
+/// (Tikhonov-regularised if asked), Gamma^p K^p Z by eq. (25), and the states
+/// Sigma_n V = U_n^T Gamma K Z.
+fn dual_gamma_kz(
+    dims: &PbsidDims,
+    slab: &Slab<'_, f64>,
+    windows: usize,
+    opts: &PbsidOptions,
+) -> Result<GammaKz, FitError> {
+    let (p, l) = (dims.p, dims.l);
+    let nb = windows;
+    let mut g = DMatrix::<f64>::zeros(nb, nb);
+    for a in 0..nb {
+        for b in a..nb {
+            let v = dual_kernel(slab, a, slab, b, p, opts.feedthrough);
+            g[(a, b)] = v;
+            g[(b, a)] = v;
+        }
+    }
+    let y = DMatrix::from_fn(l, nb, |j, k| slab.y(k + p)[j]);
+    let (vals, vecs) = sym_eig(&g)?;
+    let bd = vecs.transpose() * y.transpose(); // nb x l
+    let energy: Vec<f64> = (0..nb).map(|i| bd.row(i).norm_squared()).collect();
+    let spec = Spectrum {
+        vals: vals.clone(),
+        energy,
+        total: y.norm_squared(),
+        rows: nb as f64,
+    };
+    let (lam, dof, cut) = choose_lambda(opts.reg, &spec);
+    let mut scaled = bd;
+    for i in 0..nb {
+        let f = filter(vals[i], lam, cut);
+        scaled.row_mut(i).scale_mut(f);
+    }
+    let alpha = (vecs * scaled).transpose(); // l x nb
+    let gkz = dual_gamma_kz_matrix(dims, future(dims, opts)?, slab, &alpha);
+    let w = &gkz * gkz.transpose();
+    let (sv, u) = svd_left(&w)?;
+    let x = u.transpose() * gkz;
+    let vmax = vals.first().copied().unwrap_or(0.0);
+    let lambda = match opts.reg {
+        Reg::None => None,
+        _ => Some((lam, vmax)),
+    };
+    Ok(((sv, x), lambda, dof))
+}
+
+/// Eq. (25): row block i of Gamma^p K^p Z is alpha sum_{j >= i} (Z^{i,j})^T Z^{1,j}. Entry
+/// (a, b) of that kernel is Theorem 10 between the window starting at a - i + 1 and window
+/// b, summed over t0 >= i - 1; one backward pass over t gives it for every i at once.
+pub fn dual_gamma_kz_matrix(
+    dims: &PbsidDims,
+    f: usize,
+    slab: &Slab<'_, f64>,
+    alpha: &DMatrix<f64>,
+) -> DMatrix<f64> {
+    let (p, l) = (dims.p, dims.l);
+    let nb = alpha.ncols();
+    let nz = dims.nz();
+    let n_samples = slab.len();
+    // Gram matrices of mu and z over all samples (Lemma 9: products of these).
+    let gmu = DMatrix::from_fn(n_samples, n_samples, |a, b| {
+        lpvid::real::dot(slab.mu(a), slab.mu(b))
+    });
+    let gz = DMatrix::from_fn(n_samples, n_samples, |a, b| {
+        lpvid::real::dot(&slab.z(a)[..nz], &slab.z(b)[..nz])
+    });
+    let mut out = DMatrix::zeros(f * l, nb);
+    let mut ks = vec![0.0; p];
+    // window start s of the shifted window, from -(p-1) to nb-1
+    for s in -(p as isize - 1)..(nb as isize) {
+        for b in 0..nb {
+            let mut acc = 0.0;
+            let mut prod = 1.0;
+            for t in (0..p).rev() {
+                let sa = s + t as isize;
+                if sa < 0 {
+                    // t0 < -s never contributes for any valid i
+                    for v in ks[..=t].iter_mut() {
+                        *v = f64::NAN;
+                    }
+                    break;
+                }
+                let sa = sa as usize;
+                prod *= gmu[(sa, b + t)];
+                acc += prod * gz[(sa, b + t)];
+                ks[t] = acc;
+            }
+            for i in 1..=f {
+                let a = s + i as isize - 1;
+                if a < 0 || a >= nb as isize {
+                    continue;
+                }
+                let kv = ks[i - 1];
+                if kv.is_nan() || kv == 0.0 {
+                    continue;
+                }
+                let a = a as usize;
+                for j in 0..l {
+                    out[((i - 1) * l + j, b)] += alpha[(j, a)] * kv;
+                }
+            }
+        }
+    }
+    out
+}
+
+/// Section 4.3: with the states, C and D from y_k = C x_k + D u_k + e_k, then A^(i), B^(i),
+/// K^(i) from x_{k+1} = sum_i mu_k^(i) (A^(i) x_k + B^(i) u_k + K^(i) e_k), both by least
+/// squares on the core's Gram statistics. `states` column k is x_{k+p} (window k).
+pub fn realize(
+    dims: &PbsidDims,
+    slab: &Slab<'_, f64>,
+    states: &DMatrix<f64>,
+    feedthrough: bool,
+) -> Result<LpvSs, FitError> {
+    let (p, r, l, m) = (dims.p, dims.r, dims.l, dims.m());
+    let n = states.nrows();
+    let nb = states.ncols();
+    let r_ft = if feedthrough { r } else { 0 };
+    // Output equation.
+    let dcd = n + r_ft + l;
+    let mut g1 = Gram::new(dcd, vec![0.0; packed_len(dcd)])?;
+    let mut row = vec![0.0; dcd];
+    for k in 0..nb {
+        row[..n].copy_from_slice(states.column(k).as_slice());
+        row[n..n + r_ft].copy_from_slice(&slab.u(k + p)[..r_ft]);
+        row[n + r_ft..].copy_from_slice(slab.y(k + p));
+        g1.update(&row)?;
+    }
+    let (s1_ff, s1_fy) = split_gram(&g1, n + r_ft);
+    let (cd, _) = min_norm_from_normal(&s1_ff, &s1_fy.transpose(), 1e-12)?;
+    let c = cd.columns(0, n).into_owned();
+    let d = if feedthrough {
+        cd.columns(n, r).into_owned()
+    } else {
+        DMatrix::zeros(l, r)
+    };
+    // State equation on the innovation estimates.
+    let nxi = n + r + l;
+    let dst = m * nxi + n;
+    let mut g2 = Gram::new(dst, vec![0.0; packed_len(dst)])?;
+    let mut row = vec![0.0; dst];
+    let mut xi = vec![0.0; nxi];
+    for k in 0..nb.saturating_sub(1) {
+        let x = states.column(k);
+        let u = slab.u(k + p);
+        let y = slab.y(k + p);
+        let e = DVector::from_column_slice(y) - &c * x - &d * DVector::from_column_slice(u);
+        xi[..n].copy_from_slice(x.as_slice());
+        xi[n..n + r].copy_from_slice(u);
+        xi[n + r..].copy_from_slice(e.as_slice());
+        let mu = slab.mu(k + p);
+        for i in 0..m {
+            for (dstv, v) in row[i * nxi..(i + 1) * nxi].iter_mut().zip(&xi) {
+                *dstv = mu[i] * v;
+            }
+        }
+        row[m * nxi..].copy_from_slice(states.column(k + 1).as_slice());
+        g2.update(&row)?;
+    }
+    let (s2_ff, s2_fy) = split_gram(&g2, m * nxi);
+    let (abk, _) = min_norm_from_normal(&s2_ff, &s2_fy.transpose(), 1e-12)?;
+    let mut model = LpvSs {
+        a: vec![],
+        b: vec![],
+        k: vec![],
+        c: vec![c],
+        d: vec![d],
+    };
+    for i in 0..m {
+        let o = i * nxi;
+        model.a.push(abk.columns(o, n).into_owned());
+        model.b.push(abk.columns(o + n, r).into_owned());
+        model.k.push(abk.columns(o + n + r, l).into_owned());
+    }
+    Ok(model)
+}
+
+/// Split a Gram of [phi; target] into (S_phiphi, S_phitarget).
+fn split_gram(g: &Gram<f64, Vec<f64>>, nphi: usize) -> (DMatrix<f64>, DMatrix<f64>) {
+    let d = g.dim();
+    let s_ff = DMatrix::from_fn(nphi, nphi, |i, j| g.get(i, j));
+    let s_fy = DMatrix::from_fn(nphi, d - nphi, |i, j| g.get(i, nphi + j));
+    (s_ff, s_fy)
+}
+
+/// Undo the internal scaling: with mu'_{j+1} = (p_j - c_j)/s_j, a scheduled matrix
+/// M(mu') = M'_1 + sum_j mu'_{j+1} M'_{j+1} equals M_1 + sum_j p_j M_{j+1} with
+/// M_{j+1} = M'_{j+1}/s_j and M_1 = M'_1 - sum_j (c_j/s_j) M'_{j+1}; inputs and outputs
+/// rescale B, K, C, D.
+pub fn unscale(model: &LpvSs, sc: &Scaling) -> LpvSs {
+    let su = DMatrix::from_diagonal(&DVector::from_iterator(
+        sc.u.len(),
+        sc.u.iter().map(|v| 1.0 / v),
+    ));
+    let sy_inv = DMatrix::from_diagonal(&DVector::from_iterator(
+        sc.y.len(),
+        sc.y.iter().map(|v| 1.0 / v),
+    ));
+    let sy = DMatrix::from_diagonal(&DVector::from_column_slice(&sc.y));
+    let resched = |mats: &[DMatrix<f64>]| -> Vec<DMatrix<f64>> {
+        if mats.len() == 1 {
+            return mats.to_vec();
+        }
+        let mut out = mats.to_vec();
+        for j in 0..sc.p_scale.len() {
+            out[j + 1] = &mats[j + 1] / sc.p_scale[j];
+            out[0] -= &mats[j + 1] * (sc.p_center[j] / sc.p_scale[j]);
+        }
+        out
+    };
+    let a = resched(&model.a);
+    let b: Vec<_> = resched(&model.b).iter().map(|x| x * &su).collect();
+    let k: Vec<_> = resched(&model.k).iter().map(|x| x * &sy_inv).collect();
+    let c: Vec<_> = resched(&model.c).iter().map(|x| &sy * x).collect();
+    let d: Vec<_> = resched(&model.d).iter().map(|x| &sy * x * &su).collect();
+    LpvSs { a, b, k, c, d }
+}
