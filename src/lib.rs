@@ -7,14 +7,20 @@
 //! - [`window`]: regressor windows, z_k^p of the kernel paper (Definitions 5-6, eq. (12)).
 //! - [`stats`]: second-moment statistics of problem (13), mergeable.
 //! - [`kernel`]: the kernels of Theorem 10 and the row blocks of eq. (25), never forming Z.
+//! - [`arx`]: LPV-ARX regressors phi(k) = chi(k) (x) pbasis(k) (BC-IV paper, eq. (6)).
+//! - [`bciv`]: bias-corrected IV statistics, one matrix per power of sigma^2 (BC-IV paper, section 5).
+//! - [`lasso`]: coordinate-descent Lasso on statistics, l1 (BC-IV cost (10)) and l2,1 (sparse paper (33)).
 //!
 //! Storage is always caller-provided (`AsRef<[T]> + AsMut<[T]>`): arrays sized by `const`
 //! functions on the device, `Vec`s on the host; one implementation, two ways to own it.
 #![cfg_attr(not(test), no_std)]
 #![deny(missing_docs)]
 
+pub mod arx;
+pub mod bciv;
 pub mod error;
 pub mod kernel;
+pub mod lasso;
 pub mod real;
 pub mod stats;
 pub mod window;
