@@ -32,6 +32,10 @@ impl std::str::FromStr for Reg {
         match s {
             "none" => Ok(Reg::None),
             "tikhonov-gcv" => Ok(Reg::TikhonovGcv),
+            t if t.starts_with("tikhonov=") => t[9..]
+                .parse::<f64>()
+                .map(Reg::Tikhonov)
+                .map_err(|e| format!("bad Tikhonov parameter in '{t}': {e}")),
             other => Err(format!(
                 "unknown regularisation '{other}' (expected none or tikhonov-gcv)"
             )),
@@ -101,6 +105,12 @@ pub struct PbsidOptions {
     /// Future window f <= p: the number of row blocks of Gamma^f K^p Z used for the SVD
     /// (the paper uses f = p; a shorter future drops the most truncated rows).
     pub future: Option<usize>,
+    /// Scheduling weight kappa: the scheduling signals are scaled so that the mean of
+    /// |p'|^2 is kappa. Each regressor block carries one mu factor per step of depth, so
+    /// kappa sets how strongly the regularisation (and the minimum-norm choice) favours
+    /// short-memory over deep Kronecker terms; it does not change an unregularised
+    /// full-rank fit.
+    pub sched_weight: f64,
 }
 
 impl PbsidOptions {
@@ -114,9 +124,13 @@ impl PbsidOptions {
             solver: Solver::Auto,
             max_order: 20,
             future: None,
+            sched_weight: DEFAULT_SCHED_WEIGHT,
         }
     }
 }
+
+/// Default scheduling weight kappa (see [`PbsidOptions::sched_weight`]).
+pub const DEFAULT_SCHED_WEIGHT: f64 = 0.05;
 
 /// Internal scaling: u' = u / su, y' = y / sy, p' = (p - pc) / ps.
 #[derive(Debug, Clone, PartialEq)]
@@ -125,7 +139,8 @@ pub struct Scaling {
     pub u: Vec<f64>,
     /// Output scales.
     pub y: Vec<f64>,
-    /// Scheduling centres.
+    /// Scheduling centres (zero: centring would move the first local model A^(1), whose
+    /// powers build Gamma^p in eq. (14), away from p = 0 and break its structure).
     pub p_center: Vec<f64>,
     /// Scheduling scales.
     pub p_scale: Vec<f64>,
@@ -176,7 +191,7 @@ impl From<String> for FitError {
 }
 
 /// Scale the signals and lay them out as the core's sample rows [u', y', mu'].
-fn scale(sig: &Signals) -> Result<(Scaling, Vec<f64>), FitError> {
+fn scale(sig: &Signals, kappa: f64) -> Result<(Scaling, Vec<f64>), FitError> {
     let (n, r, l, s) = (sig.len(), sig.u.ncols(), sig.y.ncols(), sig.p.ncols());
     let mut sc = Scaling {
         u: vec![1.0; r],
@@ -209,10 +224,9 @@ fn scale(sig: &Signals) -> Result<(Scaling, Vec<f64>), FitError> {
                 j + 1
             )));
         }
-        // Scale only: centring would move the first local model A^(1), whose powers
-        // build Gamma^p in eq. (14), away from p = 0 and break the truncation structure.
         let _ = mean;
-        sc.p_scale[j] = sd;
+        let rms = (sig.p.column(j).iter().map(|v| v * v).sum::<f64>() / n as f64).sqrt();
+        sc.p_scale[j] = rms / (kappa / s as f64).sqrt();
     }
     let w = r + l + s + 1;
     let mut rows = vec![0.0; n * w];
@@ -262,7 +276,7 @@ impl Spectrum {
                 rss += c;
                 continue;
             }
-            let g = lam / (v + lam);
+            let g = residual_factor(v, lam);
             rss += c * g * g;
             deficit -= 1.0 - g;
         }
@@ -343,7 +357,17 @@ fn filter(v: f64, lam: f64, cut: f64) -> f64 {
     if v <= cut {
         0.0
     } else {
-        1.0 / (v + lam)
+        (1.0 - residual_factor(v, lam)) / v
+    }
+}
+
+/// 1 - phi_i, the part of component i the regularised fit leaves in the residual.
+fn residual_factor(v: f64, lam: f64) -> f64 {
+    if std::env::var("LPVID_SQ").is_ok() {
+        let l2 = lam * lam;
+        l2 / (v * v + l2)
+    } else {
+        lam / (v + lam)
     }
 }
 
@@ -366,29 +390,56 @@ pub fn gamma_k(dims: &PbsidDims, f: usize, ck: &DMatrix<f64>) -> DMatrix<f64> {
     m
 }
 
-/// Order from the singular values: the largest ratio sigma_n / sigma_{n+1} (the gap of
-/// section 4.3), n in 1..=max_n.
+/// Order from the singular values of Gamma K Z (the gap of section 4.3). Gaps are
+/// d_n = log(sigma_n / sigma_{n+1}). The noise floor is the median of the smaller half of
+/// the singular values; an order is a candidate when sigma_n stands at least
+/// [`FLOOR_FACTOR`] times above that floor. Among candidates the order is the LARGEST n
+/// whose gap is at least half the largest candidate gap, so a big drop after the first
+/// singular value (one mode dominating the output energy) does not hide the drop into the
+/// noise floor, while gaps inside the floor are never chosen.
 pub fn select_order(sv: &[f64], max_n: usize) -> (usize, String) {
-    let floor = sv.first().copied().unwrap_or(0.0) * 1e-13;
-    let upto = max_n.min(sv.len().saturating_sub(1)).max(1);
-    let mut ratios: Vec<(usize, f64)> = (1..=upto)
-        .filter(|&n| n < sv.len())
-        .map(|n| (n, sv[n - 1].max(floor) / sv[n].max(floor)))
+    let tiny = sv.first().copied().unwrap_or(0.0) * 1e-13;
+    let mut sorted: Vec<f64> = sv.to_vec();
+    sorted.sort_by(f64::total_cmp);
+    let half = &sorted[..(sorted.len() / 2).max(1)];
+    let floor = half[half.len() / 2].max(tiny);
+    let upto = max_n.min(sv.len().saturating_sub(1));
+    let gaps: Vec<(usize, f64)> = (1..=upto)
+        .filter(|&n| n == 1 || sv[n - 1] >= FLOOR_FACTOR * floor)
+        .map(|n| (n, (sv[n - 1].max(tiny) / sv[n].max(tiny)).ln()))
         .collect();
-    if ratios.is_empty() {
+    if gaps.is_empty() {
         return (1, "only one singular value".into());
     }
-    ratios.sort_by(|a, b| b.1.total_cmp(&a.1));
-    let (n, g) = ratios[0];
-    let reason = match ratios.get(1) {
-        Some(&(n2, g2)) => format!(
-            "largest singular-value gap after sigma_{n}: sigma_{n}/sigma_{} = {g:.1} (next largest {g2:.1} after sigma_{n2})",
-            n + 1
-        ),
-        None => format!("gap sigma_{n}/sigma_{} = {g:.1}", n + 1),
-    };
+    let (nbig, dmax) = gaps
+        .iter()
+        .copied()
+        .fold((0, f64::MIN), |a, g| if g.1 > a.1 { g } else { a });
+    let &(n, d) = gaps
+        .iter()
+        .rev()
+        .find(|g| g.1 >= ALPHA_GAP * dmax)
+        .unwrap_or(&gaps[0]);
+    let mut reason = format!(
+        "singular-value gap after sigma_{n}: sigma_{n}/sigma_{} = {:.1}, sigma_{n} is {:.0}x the noise floor {:.3e}",
+        n + 1,
+        d.exp(),
+        sv[n - 1] / floor,
+        floor
+    );
+    if nbig != n {
+        reason.push_str(&format!(
+            "; the larger gap {:.1} after sigma_{nbig} is followed by this one",
+            dmax.exp()
+        ));
+    }
     (n, reason)
 }
+
+/// Fraction of the largest log-gap a later gap needs to be chosen (see [`select_order`]).
+const ALPHA_GAP: f64 = 0.65;
+/// How far above the noise floor a singular value must stand to count as signal.
+pub const FLOOR_FACTOR: f64 = 4.0;
 
 /// Identify an LPV state-space model with LPV-PBSID_opt.
 pub fn fit(sig: &Signals, opts: &PbsidOptions) -> Result<PbsidFit, FitError> {
@@ -405,7 +456,13 @@ pub fn fit(sig: &Signals, opts: &PbsidOptions) -> Result<PbsidFit, FitError> {
     let windows = n_samples - p;
     let q = dims.q()?;
     let r_ft = if opts.feedthrough { r } else { 0 };
-    let (scaling, rows) = scale(sig)?;
+    if !(opts.sched_weight > 0.0 && opts.sched_weight.is_finite()) {
+        return Err(FitError(format!(
+            "scheduling weight must be positive, got {}",
+            opts.sched_weight
+        )));
+    }
+    let (scaling, rows) = scale(sig, opts.sched_weight)?;
     let slab = Slab::new(&rows, r, l, m)?;
 
     // The cheaper exact form: operation counts of building + decomposing each.
