@@ -60,7 +60,9 @@ impl std::str::FromStr for Order {
         }
         match s.parse::<usize>() {
             Ok(n) if n > 0 => Ok(Order::Fixed(n)),
-            _ => Err(format!("order must be a positive integer or 'auto', got '{s}'")),
+            _ => Err(format!(
+                "order must be a positive integer or 'auto', got '{s}'"
+            )),
         }
     }
 }
@@ -201,7 +203,7 @@ fn scale(sig: &Signals, kappa: f64) -> Result<(Scaling, Vec<f64>), FitError> {
     };
     for j in 0..r {
         let (_, sd) = mean_std(sig.u.column(j).iter().copied());
-        if !(sd > 0.0) {
+        if sd.partial_cmp(&0.0) != Some(std::cmp::Ordering::Greater) {
             return Err(FitError(format!(
                 "input u{} is constant: it carries no information and makes the regression rank deficient",
                 j + 1
@@ -211,14 +213,14 @@ fn scale(sig: &Signals, kappa: f64) -> Result<(Scaling, Vec<f64>), FitError> {
     }
     for j in 0..l {
         let (_, sd) = mean_std(sig.y.column(j).iter().copied());
-        if !(sd > 0.0) {
+        if sd.partial_cmp(&0.0) != Some(std::cmp::Ordering::Greater) {
             return Err(FitError(format!("output y{} is constant", j + 1)));
         }
         sc.y[j] = sd;
     }
     for j in 0..s {
         let (mean, sd) = mean_std(sig.p.column(j).iter().copied());
-        if !(sd > 0.0) {
+        if sd.partial_cmp(&0.0) != Some(std::cmp::Ordering::Greater) {
             return Err(FitError(format!(
                 "scheduling p{} is constant: it is indistinguishable from the affine term",
                 j + 1
@@ -232,15 +234,15 @@ fn scale(sig: &Signals, kappa: f64) -> Result<(Scaling, Vec<f64>), FitError> {
     let mut rows = vec![0.0; n * w];
     for k in 0..n {
         let row = &mut rows[k * w..(k + 1) * w];
-        for j in 0..r {
-            row[j] = sig.u[(k, j)] / sc.u[j];
+        for (j, v) in row[..r].iter_mut().enumerate() {
+            *v = sig.u[(k, j)] / sc.u[j];
         }
-        for j in 0..l {
-            row[r + j] = sig.y[(k, j)] / sc.y[j];
+        for (j, v) in row[r..r + l].iter_mut().enumerate() {
+            *v = sig.y[(k, j)] / sc.y[j];
         }
         row[r + l] = 1.0;
-        for j in 0..s {
-            row[r + l + 1 + j] = (sig.p[(k, j)] - sc.p_center[j]) / sc.p_scale[j];
+        for (j, v) in row[r + l + 1..].iter_mut().enumerate() {
+            *v = (sig.p[(k, j)] - sc.p_center[j]) / sc.p_scale[j];
         }
     }
     Ok((sc, rows))
@@ -302,9 +304,6 @@ impl Spectrum {
         let mut e = lo;
         while e <= hi {
             let g = f(e);
-            if std::env::var("LPVID_GCV").is_ok() {
-                eprintln!("gcv 1e{e:.2}: {g:.6e} {:?}", self.rss_deficit(vmax * 10f64.powf(e), cut));
-            }
             if g < best.1 {
                 best = (e, g);
             }
@@ -363,12 +362,7 @@ fn filter(v: f64, lam: f64, cut: f64) -> f64 {
 
 /// 1 - phi_i, the part of component i the regularised fit leaves in the residual.
 fn residual_factor(v: f64, lam: f64) -> f64 {
-    if std::env::var("LPVID_SQ").is_ok() {
-        let l2 = lam * lam;
-        l2 / (v * v + l2)
-    } else {
-        lam / (v + lam)
-    }
+    lam / (v + lam)
 }
 
 /// Gamma^p K^p of eq. (14) from the estimate of C K^p (l x q): row block i, column block j
@@ -559,7 +553,7 @@ fn primal_gamma_kz(
     windows: usize,
     opts: &PbsidOptions,
 ) -> Result<GammaKz, FitError> {
-    let (p, r, l) = (dims.p, dims.r, dims.l);
+    let (r, l) = (dims.r, dims.l);
     let q = dims.q()?;
     let d = dims.stat_len()?;
     let mut gram = Gram::new(d, vec![0.0; packed_len(d)])?;
@@ -601,11 +595,9 @@ fn primal_gamma_kz(
         rows: windows as f64,
     };
     let (lam, dof, cut) = choose_lambda(opts.reg, &spec);
-    if std::env::var("LPVID_DEBUG").is_ok() { let (rss, _) = spec.rss_dof(lam, cut); eprintln!("primal rel rss {:.3e} dof {dof:.1}", rss / spec.total); }
     let mut scaled_b = b;
-    for i in 0..qf {
-        let f = filter(vals[i], lam, cut);
-        scaled_b.row_mut(i).scale_mut(f);
+    for (i, &v) in vals.iter().enumerate() {
+        scaled_b.row_mut(i).scale_mut(filter(v, lam, cut));
     }
     let theta = (vecs * scaled_b).transpose(); // l x qf
     let ck = theta.columns(0, q).into_owned();
@@ -681,9 +673,8 @@ fn dual_gamma_kz(
     };
     let (lam, dof, cut) = choose_lambda(opts.reg, &spec);
     let mut scaled = bd;
-    for i in 0..nb {
-        let f = filter(vals[i], lam, cut);
-        scaled.row_mut(i).scale_mut(f);
+    for (i, &v) in vals.iter().enumerate() {
+        scaled.row_mut(i).scale_mut(filter(v, lam, cut));
     }
     let alpha = (vecs * scaled).transpose(); // l x nb
     let gkz = dual_gamma_kz_matrix(dims, future(dims, opts)?, slab, &alpha);
