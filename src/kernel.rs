@@ -108,7 +108,11 @@ mod tests {
                     }
                     let off = d.block_offset(j);
                     let len = d.block_len(j);
-                    e += col.iter().zip(&zb[off..off + len]).map(|(x, y)| x * y).sum::<f64>();
+                    e += col
+                        .iter()
+                        .zip(&zb[off..off + len])
+                        .map(|(x, y)| x * y)
+                        .sum::<f64>();
                 }
                 let k = theorem10(&slab, a as isize - (i as isize - 1), &slab, b, i - 1, d.p);
                 assert!((e - k).abs() < 1e-9 * (1.0 + e.abs()), "{a} {b} {e} {k}");

@@ -27,7 +27,7 @@ pub mod window;
 
 pub use error::{Error, Field};
 pub use real::Real;
-pub use stats::{packed_len, Gram, PbsidStats};
+pub use stats::{packed_len, stat_vector_len, write_stat_vector, Gram, PbsidStats, StatsLayout};
 pub use window::{regressor_len, window_storage_len, PbsidDims, Samples, Slab, Window};
 
 /// The one streaming interface: feed a sample (u_k, y_k, p_k) to an accumulator. Returns

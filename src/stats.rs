@@ -7,6 +7,8 @@
 
 use crate::error::{check_vec, Error, Field};
 use crate::real::{first_non_finite, Real};
+#[cfg(test)]
+use crate::window::Samples;
 use crate::window::{window_storage_len, PbsidDims, Window};
 
 /// Number of values in the packed upper triangle of a `dim` x `dim` symmetric matrix.
@@ -195,15 +197,104 @@ impl<T: Real, S: AsRef<[T]> + AsMut<[T]>> Gram<T, S> {
     }
 }
 
+/// What [`PbsidStats`] accumulates.
+///
+/// - `Plain`: the second moments of s_k = [w_k; 1; p_{k+p}] with
+///   w_k = [z_k^p; u_{k+p}; y_{k+p}]: everything problem (13) needs, plus the count and the
+///   first and second moments of every channel (for scaling after the fact).
+/// - `Extended`: the second moments of s_k = [mu_{k+p} (x) w_k; 1; p_{k+p}]. Because
+///   mu^(1) = 1, w_k is its leading part, and because z_{k+1}^p is a selection of
+///   mu_{k+p} (x) [z_k^p; z_{k+p}], every moment of the realization step (section 4.3:
+///   states x_{k+p} = T z_k^p and x_{k+p+1} = T z_{k+1}^p) is a linear function of these
+///   statistics: a device can ship them and the host finishes the whole fit without data.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum StatsLayout {
+    /// Statistics of problem (13) only.
+    Plain,
+    /// Statistics of (13) and of the realization (m times longer vector).
+    Extended,
+}
+
+/// Length of the statistic vector s_k of `layout` for `dims`.
+pub fn stat_vector_len(dims: &PbsidDims, layout: StatsLayout) -> Result<usize, Error> {
+    let d = dims.stat_len()?;
+    let core = match layout {
+        StatsLayout::Plain => d,
+        StatsLayout::Extended => d.checked_mul(dims.m()).ok_or(Error::Overflow)?,
+    };
+    core.checked_add(1 + dims.s).ok_or(Error::Overflow)
+}
+
+/// `const` form of [`stat_vector_len`] for sizing firmware storage (0 on overflow).
+pub const fn stat_vector_len_const(
+    r: usize,
+    l: usize,
+    s: usize,
+    p: usize,
+    extended: bool,
+) -> usize {
+    match crate::window::regressor_len(r, l, s, p) {
+        Some(q) => {
+            let d = q + r + l;
+            (if extended { d * (s + 1) } else { d }) + 1 + s
+        }
+        None => 0,
+    }
+}
+
+/// Write the statistic vector s_k of `layout` for the window starting at sample `k` of
+/// `src` (samples k..k+p) into `out` (length [`stat_vector_len`]). The one place that
+/// defines the layout; the device and the host both call it.
+pub fn write_stat_vector<T: Real, X: crate::window::Samples<T> + ?Sized>(
+    dims: &PbsidDims,
+    layout: StatsLayout,
+    src: &X,
+    k: usize,
+    out: &mut [T],
+) {
+    let q = crate::window::regressor_len(dims.r, dims.l, dims.s, dims.p).unwrap_or(0);
+    let d = q + dims.r + dims.l;
+    let p = dims.p;
+    {
+        let w = &mut out[..d];
+        crate::window::write_pbsid_regressor(dims, src, k, &mut w[..q]);
+        w[q..q + dims.r].copy_from_slice(src.u(k + p));
+        w[q + dims.r..].copy_from_slice(src.y(k + p));
+    }
+    let mu = src.mu(k + p);
+    let core = match layout {
+        StatsLayout::Plain => d,
+        StatsLayout::Extended => {
+            // mu (x) w, filled from the top so w (block 0, mu^(1) = 1) survives until last
+            let (head, tail) = out.split_at_mut(d);
+            for i in (1..dims.m()).rev() {
+                let mi = mu[i];
+                for (dst, v) in tail[(i - 1) * d..i * d].iter_mut().zip(head.iter()) {
+                    *dst = mi * *v;
+                }
+            }
+            d * dims.m()
+        }
+    };
+    out[core] = T::ONE;
+    out[core + 1..core + 1 + dims.s].copy_from_slice(&mu[1..]);
+}
+
 /// Streaming sufficient statistics of LPV-PBSID_opt: a [`Window`] feeding a [`Gram`] of
-/// w_k = [z_k^p; u_{k+p}; y_{k+p}] (problem (13) of the kernel paper), plus the regressor
-/// scratch. Storage is caller-provided: see [`PbsidStatsArrays`] for the static form.
+/// the statistic vector of a [`StatsLayout`] (problem (13) of the kernel paper, and with
+/// `Extended` the realization too). Storage is caller-provided: see [`PbsidStatsArrays`]
+/// for the static form.
+///
+/// Size: window (p+2)(r+l+s+1) + Gram L(L+1)/2 + scratch L values with
+/// L = [`stat_vector_len`]; the B2 blade model (r = l = s = 1) with p = 3 and `Extended`
+/// needs L = 65, 2 145 Gram values, about 8.9 KiB in f32.
 #[derive(Debug, Clone)]
 pub struct PbsidStats<T, SW, SG, SR> {
     window: Window<T, SW>,
     gram: Gram<T, SG>,
     scratch: SR,
-    stat_len: usize,
+    layout: StatsLayout,
+    len: usize,
 }
 
 impl<T, SW, SG, SR> PbsidStats<T, SW, SG, SR>
@@ -214,20 +305,27 @@ where
     SR: AsRef<[T]> + AsMut<[T]>,
 {
     /// Build over the three storages: window (`window_storage_len`), Gram
-    /// (`packed_len(stat_len)`) and regressor scratch (`stat_len`).
-    pub fn with_storage(dims: PbsidDims, window: SW, gram: SG, scratch: SR) -> Result<Self, Error> {
-        let stat_len = dims.stat_len()?;
-        if scratch.as_ref().len() < stat_len {
+    /// (`packed_len(L)`) and scratch (`L`), L = [`stat_vector_len`].
+    pub fn with_storage(
+        dims: PbsidDims,
+        layout: StatsLayout,
+        window: SW,
+        gram: SG,
+        scratch: SR,
+    ) -> Result<Self, Error> {
+        let len = stat_vector_len(&dims, layout)?;
+        if scratch.as_ref().len() < len {
             return Err(Error::Capacity {
-                needed: stat_len,
+                needed: len,
                 capacity: scratch.as_ref().len(),
             });
         }
         Ok(PbsidStats {
             window: Window::new(dims, window)?,
-            gram: Gram::new(stat_len, gram)?,
+            gram: Gram::new(len, gram)?,
             scratch,
-            stat_len,
+            layout,
+            len,
         })
     }
 
@@ -236,7 +334,12 @@ where
         self.window.dims()
     }
 
-    /// The accumulated second moments of w_k.
+    /// The layout.
+    pub fn layout(&self) -> StatsLayout {
+        self.layout
+    }
+
+    /// The accumulated second moments of the statistic vector.
     pub fn gram(&self) -> &Gram<T, SG> {
         &self.gram
     }
@@ -246,8 +349,8 @@ where
         &mut self.gram
     }
 
-    /// Feed one sample. Returns `Ok(true)` when a full window produced a regressor that was
-    /// accumulated. A rejected sample (wrong length, NaN/inf, overflow in the regressor)
+    /// Feed one sample. Returns `Ok(true)` when a full window produced a vector that was
+    /// accumulated. A rejected sample (wrong length, NaN/inf, overflow in the products)
     /// leaves the statistics and the window exactly as they were.
     pub fn update(&mut self, u: &[T], y: &[T], p: &[T]) -> Result<bool, Error> {
         let was_len = self.window.len();
@@ -255,41 +358,43 @@ where
         if !self.window.is_full() {
             return Ok(false);
         }
-        let w = &mut self.scratch.as_mut()[..self.stat_len];
-        if let Err(e) = self.window.regressor(w) {
+        let dims = self.window.dims();
+        let v = &mut self.scratch.as_mut()[..self.len];
+        write_stat_vector(&dims, self.layout, &self.window, 0, v);
+        if let Err(e) = self.gram.update(v) {
             self.window.unpush(was_len);
-            return Err(e);
-        }
-        if let Err(e) = self.gram.update(w) {
-            self.window.unpush(was_len);
-            return Err(e);
+            // the inputs were finite: a non-finite product is an overflow
+            return Err(match e {
+                Error::NonFinite { .. } => Error::Overflow,
+                other => other,
+            });
         }
         Ok(true)
     }
 
-    /// Start a new experiment: the next regressor needs p + 1 fresh samples; the
-    /// statistics are kept.
+    /// Start a new experiment: the next vector needs p + 1 fresh samples; the statistics
+    /// are kept.
     pub fn break_window(&mut self) {
         self.window.clear();
     }
 }
 
 /// Statically sized storage for [`PbsidStats`] (firmware): `W` window values, `G` Gram
-/// values, `R` regressor values; compute them with [`window_storage_len`], [`packed_len`]
-/// and [`PbsidDims::stat_len`] in `const` items.
+/// values, `R` vector values; compute them with [`window_storage_len`], [`packed_len`]
+/// and [`stat_vector_len_const`] in `const` items.
 pub type PbsidStatsArrays<T, const W: usize, const G: usize, const R: usize> =
     PbsidStats<T, [T; W], [T; G], [T; R]>;
 
 impl<T: Real, const W: usize, const G: usize, const R: usize> PbsidStatsArrays<T, W, G, R> {
     /// Static-storage statistics for `dims`; fails if the capacities are too small.
-    pub fn new(dims: PbsidDims) -> Result<Self, Error> {
+    pub fn new(dims: PbsidDims, layout: StatsLayout) -> Result<Self, Error> {
         if W < window_storage_len(dims.r, dims.l, dims.s, dims.p) {
             return Err(Error::Capacity {
                 needed: window_storage_len(dims.r, dims.l, dims.s, dims.p),
                 capacity: W,
             });
         }
-        Self::with_storage(dims, [T::ZERO; W], [T::ZERO; G], [T::ZERO; R])
+        Self::with_storage(dims, layout, [T::ZERO; W], [T::ZERO; G], [T::ZERO; R])
     }
 }
 
@@ -328,7 +433,9 @@ mod tests {
         assert_eq!(batch.packed(), all.packed());
         let before = batch.packed().to_vec();
         assert!(batch.update(&[1.0, f64::INFINITY, 0.0]).is_err());
-        assert!(batch.update_batch(&[1.0, 2.0, 3.0, f64::NAN, 0.0, 0.0], 2).is_err());
+        assert!(batch
+            .update_batch(&[1.0, 2.0, 3.0, f64::NAN, 0.0, 0.0], 2)
+            .is_err());
         assert_eq!(batch.packed(), &before[..]);
         assert_eq!(batch.count(), 7);
     }
@@ -339,13 +446,12 @@ mod tests {
         const L: usize = 1;
         const S: usize = 1;
         const P: usize = 2;
-        const D: usize = match crate::window::regressor_len(R, L, S, P) {
-            Some(q) => q + R + L,
-            None => 0,
-        };
+        const D: usize = stat_vector_len_const(R, L, S, P, true);
         const W: usize = window_storage_len(R, L, S, P);
         let dims = PbsidDims::new(R, L, S, P).unwrap();
-        let mut st = PbsidStatsArrays::<f32, W, { packed_len(D) }, D>::new(dims).unwrap();
+        let mut st =
+            PbsidStatsArrays::<f32, W, { packed_len(D) }, D>::new(dims, StatsLayout::Extended)
+                .unwrap();
         let mut n = 0;
         for k in 0..10 {
             let x = k as f32;
@@ -362,5 +468,45 @@ mod tests {
         assert_eq!(st.gram().packed(), &before[..]);
         // the window was restored: the next good sample behaves as if nothing happened
         assert!(st.update(&[10.0], &[5.0], &[1.0]).unwrap());
+        // channel block: count and sum of p_{k+p} sit at the end of the vector
+        let n = st.gram().dim();
+        assert_eq!(st.gram().get(n - 2, n - 2), 9.0);
+        let sum_p: f32 = (2..10).map(|k| 0.1 * k as f32).sum::<f32>() + 1.0;
+        assert!((st.gram().get(n - 2, n - 1) - sum_p).abs() < 1e-5);
+    }
+
+    #[test]
+    fn extended_vector_contains_plain_and_shift() {
+        use crate::window::{write_pbsid_regressor, Slab};
+        let dims = PbsidDims::new(1, 1, 1, 2).unwrap();
+        let data: Vec<f64> = (0..8)
+            .flat_map(|k| {
+                let f = k as f64;
+                [f.sin(), (0.3 * f).cos(), 1.0, 0.5 + 0.1 * f]
+            })
+            .collect();
+        let slab = Slab::new(&data, 1, 1, 2).unwrap();
+        let lp = stat_vector_len(&dims, StatsLayout::Plain).unwrap();
+        let le = stat_vector_len(&dims, StatsLayout::Extended).unwrap();
+        let (mut vp, mut ve) = (vec![0.0; lp], vec![0.0; le]);
+        write_stat_vector(&dims, StatsLayout::Plain, &slab, 1, &mut vp);
+        write_stat_vector(&dims, StatsLayout::Extended, &slab, 1, &mut ve);
+        let d = dims.stat_len().unwrap();
+        assert_eq!(&vp[..d], &ve[..d]);
+        assert_eq!(&vp[d..], &ve[2 * d..]);
+        let mu2 = slab.mu(1 + 2)[1];
+        for i in 0..d {
+            assert!((ve[d + i] - mu2 * vp[i]).abs() < 1e-15);
+        }
+        // z_{k+1}^p block 1 = mu_{k+p} (x) block 2 of z_k^p: a selection of the extended vector
+        let q = dims.q().unwrap();
+        let mut z1 = vec![0.0; q];
+        write_pbsid_regressor(&dims, &slab, 2, &mut z1);
+        let b2 = dims.block_offset(2);
+        let l2 = dims.block_len(2);
+        for (t, zt) in z1[..2 * l2].iter().enumerate() {
+            let (i, j) = (t / l2, t % l2);
+            assert!((zt - ve[i * d + b2 + j]).abs() < 1e-15);
+        }
     }
 }

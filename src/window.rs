@@ -378,7 +378,13 @@ mod tests {
         let d = PbsidDims::new(1, 2, 1, 3).unwrap();
         let mut w = Window::new(d, vec![0.0; window_storage_len(1, 2, 1, 3)]).unwrap();
         let samples: Vec<(f64, [f64; 2], f64)> = (0..6)
-            .map(|k| (k as f64 + 0.5, [k as f64 * 2.0 - 1.0, 0.3 * k as f64], 0.1 * k as f64 - 0.2))
+            .map(|k| {
+                (
+                    k as f64 + 0.5,
+                    [k as f64 * 2.0 - 1.0, 0.3 * k as f64],
+                    0.1 * k as f64 - 0.2,
+                )
+            })
             .collect();
         for (u, y, p) in &samples[..4] {
             w.push(&[*u], y, &[*p]).unwrap();

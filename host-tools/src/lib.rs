@@ -1,7 +1,19 @@
 //! lpvid-host: the std companion of the `lpvid` core — files, fits, validation and the
 //! `lpvid` command line. Every statistic comes from the core; this crate solves, realises,
 //! simulates and reports.
+//!
+//! Where each idea lives: [`data`] (CSV), [`model`] (model JSON, signal factors),
+//! [`lpvss`] (the state-space model, simulation, predictor), [`simulate`] (any model on a
+//! data file), [`metrics`] (VAF, BFR), [`linalg`] (eigen, least squares), [`pbsid`]
+//! (LPV-PBSID_opt, kernel paper Algorithms 1-2), [`systems`] (benchmark generators),
+//! [`cli`] (the command line).
 
+pub mod cli;
+pub mod data;
+pub mod linalg;
 pub mod lpvss;
 pub mod metrics;
+pub mod model;
+pub mod pbsid;
+pub mod simulate;
 pub mod systems;

@@ -77,12 +77,14 @@ mod tests {
         let a = DMatrix::from_row_slice(3, 3, &[4.0, 1.0, 0.0, 1.0, 3.0, 0.5, 0.0, 0.5, 2.0]);
         let (vals, vecs) = sym_eig(&a).unwrap();
         assert!(vals[0] >= vals[1] && vals[1] >= vals[2]);
-        let rec = &vecs * DMatrix::from_diagonal(&DVector::from_vec(vals.clone())) * vecs.transpose();
+        let rec =
+            &vecs * DMatrix::from_diagonal(&DVector::from_vec(vals.clone())) * vecs.transpose();
         assert!((rec - &a).amax() < 1e-12);
         // rank-deficient normal equations: min-norm solution equals the pseudo-inverse one
         let x = DMatrix::from_row_slice(2, 4, &[1.0, 2.0, 3.0, 4.0, 2.0, 4.0, 6.0, 8.0]);
         let b = DMatrix::from_row_slice(1, 4, &[1.0, 0.0, 1.0, 0.0]);
-        let (sol, rank) = min_norm_from_normal(&(&x * x.transpose()), &(&b * x.transpose()), 1e-12).unwrap();
+        let (sol, rank) =
+            min_norm_from_normal(&(&x * x.transpose()), &(&b * x.transpose()), 1e-12).unwrap();
         assert_eq!(rank, 1);
         let pinv = x.clone().pseudo_inverse(1e-12).unwrap();
         assert!((sol - &b * pinv).amax() < 1e-10);

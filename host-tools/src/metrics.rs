@@ -29,8 +29,17 @@ pub fn bfr(y: &[f64], yhat: &[f64]) -> f64 {
         return 0.0;
     }
     let mean = y.iter().sum::<f64>() / y.len() as f64;
-    let num: f64 = y.iter().zip(yhat).map(|(a, b)| (a - b) * (a - b)).sum::<f64>().sqrt();
-    let den: f64 = y.iter().map(|a| (a - mean) * (a - mean)).sum::<f64>().sqrt();
+    let num: f64 = y
+        .iter()
+        .zip(yhat)
+        .map(|(a, b)| (a - b) * (a - b))
+        .sum::<f64>()
+        .sqrt();
+    let den: f64 = y
+        .iter()
+        .map(|a| (a - mean) * (a - mean))
+        .sum::<f64>()
+        .sqrt();
     if den <= 0.0 {
         return 0.0;
     }

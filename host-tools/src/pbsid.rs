@@ -9,7 +9,9 @@
 
 use lpvid::kernel::dual_kernel;
 use lpvid::window::write_pbsid_regressor;
-use lpvid::{packed_len, Gram, PbsidDims, Samples, Slab};
+use lpvid::{
+    packed_len, stat_vector_len, write_stat_vector, Gram, PbsidDims, Samples, Slab, StatsLayout,
+};
 use nalgebra::{DMatrix, DVector};
 
 use crate::linalg::{mean_std, min_norm_from_normal, sym_eig};
@@ -555,23 +557,23 @@ fn primal_gamma_kz(
 ) -> Result<GammaKz, FitError> {
     let (r, l) = (dims.r, dims.l);
     let q = dims.q()?;
-    let d = dims.stat_len()?;
-    let mut gram = Gram::new(d, vec![0.0; packed_len(d)])?;
+    let len = stat_vector_len(dims, StatsLayout::Plain)?;
+    let mut gram = Gram::new(len, vec![0.0; packed_len(len)])?;
     const BATCH: usize = 16;
-    let mut buf = vec![0.0; BATCH * d];
+    let mut buf = vec![0.0; BATCH * len];
     let mut k = 0;
     while k < windows {
         let nb = BATCH.min(windows - k);
         for b in 0..nb {
-            let row = &mut buf[b * d..(b + 1) * d];
-            write_window_row(dims, slab, k + b, row);
+            let row = &mut buf[b * len..(b + 1) * len];
+            write_stat_vector(dims, StatsLayout::Plain, slab, k + b, row);
         }
-        gram.update_batch(&buf[..nb * d], nb)?;
+        gram.update_batch(&buf[..nb * len], nb)?;
         k += nb;
     }
-    let mut dense = vec![0.0; d * d];
+    let mut dense = vec![0.0; len * len];
     gram.write_dense(&mut dense)?;
-    let s_all = DMatrix::from_row_slice(d, d, &dense);
+    let s_all = DMatrix::from_row_slice(len, len, &dense);
     let r_ft = if opts.feedthrough { r } else { 0 };
     let qf = q + r_ft;
     let s_ff = s_all.view((0, 0), (qf, qf)).into_owned();
@@ -632,14 +634,6 @@ fn future(dims: &PbsidDims, opts: &PbsidOptions) -> Result<usize, FitError> {
         )));
     }
     Ok(f)
-}
-
-/// The row w_k = [z_k^p; u_{k+p}; y_{k+p}] of window k (samples k..k+p of the slab).
-fn write_window_row(dims: &PbsidDims, slab: &Slab<'_, f64>, k: usize, row: &mut [f64]) {
-    let q = row.len() - dims.r - dims.l;
-    write_pbsid_regressor(dims, slab, k, &mut row[..q]);
-    row[q..q + dims.r].copy_from_slice(slab.u(k + dims.p));
-    row[q + dims.r..].copy_from_slice(slab.y(k + dims.p));
 }
 
 /// Dual path (Algorithm 2): kernel Z^T Z + U^T U by Theorem 10, alpha from (19)-(21)
