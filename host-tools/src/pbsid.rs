@@ -14,7 +14,7 @@ use lpvid::{
 };
 use nalgebra::{DMatrix, DVector};
 
-use crate::linalg::{mean_std, min_norm_from_normal, sym_eig};
+use crate::linalg::{min_norm_from_normal, sym_eig};
 use crate::lpvss::{LpvSs, Signals};
 
 /// Regularisation of problem (13).
@@ -194,44 +194,110 @@ impl From<String> for FitError {
     }
 }
 
-/// Scale the signals and lay them out as the core's sample rows [u', y', mu'].
-fn scale(sig: &Signals, kappa: f64) -> Result<(Scaling, Vec<f64>), FitError> {
+/// Sums of the channels over the windows' target samples (samples p..N-1): exactly what
+/// the channel block of the core's statistic vector accumulates, so a file fit and a fit
+/// from a device's statistics scale identically.
+#[derive(Debug, Clone)]
+struct ChannelSums {
+    count: f64,
+    u: Vec<(f64, f64)>,
+    y: Vec<(f64, f64)>,
+    p: Vec<(f64, f64)>,
+}
+
+impl ChannelSums {
+    fn from_signals(sig: &Signals, start: usize) -> ChannelSums {
+        let col = |m: &DMatrix<f64>, j: usize| {
+            m.column(j)
+                .iter()
+                .skip(start)
+                .fold((0.0, 0.0), |(a, b), v| (a + v, b + v * v))
+        };
+        ChannelSums {
+            count: (sig.len() - start) as f64,
+            u: (0..sig.u.ncols()).map(|j| col(&sig.u, j)).collect(),
+            y: (0..sig.y.ncols()).map(|j| col(&sig.y, j)).collect(),
+            p: (0..sig.p.ncols()).map(|j| col(&sig.p, j)).collect(),
+        }
+    }
+
+    /// Read the sums from statistics of `layout` (channel block after the core part).
+    fn from_stats<S: AsRef<[f64]> + AsMut<[f64]>>(
+        g: &Gram<f64, S>,
+        dims: &PbsidDims,
+        layout: StatsLayout,
+    ) -> Result<ChannelSums, FitError> {
+        let len = stat_vector_len(dims, layout)?;
+        let one = len - 1 - dims.s;
+        let q = dims.q()?;
+        Ok(ChannelSums {
+            count: g.get(one, one),
+            u: (0..dims.r)
+                .map(|j| (g.get(one, q + j), g.get(q + j, q + j)))
+                .collect(),
+            y: (0..dims.l)
+                .map(|j| {
+                    let i = q + dims.r + j;
+                    (g.get(one, i), g.get(i, i))
+                })
+                .collect(),
+            p: (0..dims.s)
+                .map(|j| (g.get(one, one + 1 + j), g.get(one + 1 + j, one + 1 + j)))
+                .collect(),
+        })
+    }
+
+    /// Internal scaling: inputs and outputs by their standard deviation, scheduling by
+    /// its RMS times sqrt(s / kappa) (no centring: see [`Scaling::p_center`]).
+    fn scaling(&self, kappa: f64) -> Result<Scaling, FitError> {
+        let n = self.count;
+        let stats = |(s1, s2): (f64, f64)| {
+            let mean = s1 / n;
+            let var = (s2 / n - mean * mean).max(0.0);
+            (mean, var.sqrt(), (s2 / n).sqrt())
+        };
+        let constant = |mean: f64, sd: f64| sd <= 1e-12 * mean.abs().max(1e-300) || sd == 0.0;
+        let mut sc = Scaling {
+            u: vec![],
+            y: vec![],
+            p_center: vec![0.0; self.p.len()],
+            p_scale: vec![],
+        };
+        for (j, &m) in self.u.iter().enumerate() {
+            let (mean, sd, _) = stats(m);
+            if constant(mean, sd) {
+                return Err(FitError(format!(
+                    "input u{} is constant: it carries no information and makes the regression rank deficient",
+                    j + 1
+                )));
+            }
+            sc.u.push(sd);
+        }
+        for (j, &m) in self.y.iter().enumerate() {
+            let (mean, sd, _) = stats(m);
+            if constant(mean, sd) {
+                return Err(FitError(format!("output y{} is constant", j + 1)));
+            }
+            sc.y.push(sd);
+        }
+        let s = self.p.len() as f64;
+        for (j, &m) in self.p.iter().enumerate() {
+            let (mean, sd, rms) = stats(m);
+            if constant(mean, sd) {
+                return Err(FitError(format!(
+                    "scheduling p{} is constant: it is indistinguishable from the affine term",
+                    j + 1
+                )));
+            }
+            sc.p_scale.push(rms / (kappa / s).sqrt());
+        }
+        Ok(sc)
+    }
+}
+
+/// The signals in scaled units laid out as the core's sample rows [u', y', mu'].
+fn scaled_rows(sig: &Signals, sc: &Scaling) -> Vec<f64> {
     let (n, r, l, s) = (sig.len(), sig.u.ncols(), sig.y.ncols(), sig.p.ncols());
-    let mut sc = Scaling {
-        u: vec![1.0; r],
-        y: vec![1.0; l],
-        p_center: vec![0.0; s],
-        p_scale: vec![1.0; s],
-    };
-    for j in 0..r {
-        let (_, sd) = mean_std(sig.u.column(j).iter().copied());
-        if sd.partial_cmp(&0.0) != Some(std::cmp::Ordering::Greater) {
-            return Err(FitError(format!(
-                "input u{} is constant: it carries no information and makes the regression rank deficient",
-                j + 1
-            )));
-        }
-        sc.u[j] = sd;
-    }
-    for j in 0..l {
-        let (_, sd) = mean_std(sig.y.column(j).iter().copied());
-        if sd.partial_cmp(&0.0) != Some(std::cmp::Ordering::Greater) {
-            return Err(FitError(format!("output y{} is constant", j + 1)));
-        }
-        sc.y[j] = sd;
-    }
-    for j in 0..s {
-        let (mean, sd) = mean_std(sig.p.column(j).iter().copied());
-        if sd.partial_cmp(&0.0) != Some(std::cmp::Ordering::Greater) {
-            return Err(FitError(format!(
-                "scheduling p{} is constant: it is indistinguishable from the affine term",
-                j + 1
-            )));
-        }
-        let _ = mean;
-        let rms = (sig.p.column(j).iter().map(|v| v * v).sum::<f64>() / n as f64).sqrt();
-        sc.p_scale[j] = rms / (kappa / s as f64).sqrt();
-    }
     let w = r + l + s + 1;
     let mut rows = vec![0.0; n * w];
     for k in 0..n {
@@ -247,7 +313,27 @@ fn scale(sig: &Signals, kappa: f64) -> Result<(Scaling, Vec<f64>), FitError> {
             *v = (sig.p[(k, j)] - sc.p_center[j]) / sc.p_scale[j];
         }
     }
-    Ok((sc, rows))
+    rows
+}
+
+/// The diagonal D with s' = D s for statistic vectors of scaled signals: every entry of s
+/// is a product of one value per channel factor, so D is the statistic vector of a
+/// constant "sample" holding the reciprocal scales (the same core code writes both).
+fn stat_scale_vector(
+    dims: &PbsidDims,
+    layout: StatsLayout,
+    sc: &Scaling,
+) -> Result<Vec<f64>, FitError> {
+    let mut row = Vec::with_capacity(dims.sample_len());
+    row.extend(sc.u.iter().map(|v| 1.0 / v));
+    row.extend(sc.y.iter().map(|v| 1.0 / v));
+    row.push(1.0);
+    row.extend(sc.p_scale.iter().map(|v| 1.0 / v));
+    let rows: Vec<f64> = (0..=dims.p).flat_map(|_| row.iter().copied()).collect();
+    let slab = Slab::new(&rows, dims.r, dims.l, dims.m())?;
+    let mut out = vec![0.0; stat_vector_len(dims, layout)?];
+    write_stat_vector(dims, layout, &slab, 0, &mut out);
+    Ok(out)
 }
 
 /// Spectrum of a ridge problem in the form shared by the primal and the dual: eigenvalues
@@ -437,7 +523,46 @@ const ALPHA_GAP: f64 = 0.65;
 /// How far above the noise floor a singular value must stand to count as signal.
 pub const FLOOR_FACTOR: f64 = 4.0;
 
-/// Identify an LPV state-space model with LPV-PBSID_opt.
+/// Check the options against the data size; returns the future window.
+fn check_options(dims: &PbsidDims, windows: usize, opts: &PbsidOptions) -> Result<usize, FitError> {
+    if !(opts.sched_weight > 0.0 && opts.sched_weight.is_finite()) {
+        return Err(FitError(format!(
+            "scheduling weight must be positive, got {}",
+            opts.sched_weight
+        )));
+    }
+    if windows < 2 {
+        return Err(FitError(format!(
+            "{windows} regression windows: a past window of {} needs more samples",
+            dims.p
+        )));
+    }
+    future(dims, opts)
+}
+
+/// Order: given, or from the singular values.
+fn choose_order(
+    sv: &[f64],
+    windows: usize,
+    opts: &PbsidOptions,
+) -> Result<(usize, String), FitError> {
+    let max_n = opts.max_order.min(sv.len()).min(windows / 2).max(1);
+    match opts.order {
+        Order::Fixed(n) => {
+            if n > sv.len() {
+                return Err(FitError(format!(
+                    "order {n} exceeds the f*l = {} singular values: increase the (future) window",
+                    sv.len()
+                )));
+            }
+            Ok((n, format!("order {n} given")))
+        }
+        Order::Auto => Ok(select_order(sv, max_n)),
+    }
+}
+
+/// Identify an LPV state-space model with LPV-PBSID_opt from data (Algorithm 1 with the
+/// primal statistics, or Algorithm 2 in the kernel form, whichever is cheaper).
 pub fn fit(sig: &Signals, opts: &PbsidOptions) -> Result<PbsidFit, FitError> {
     let (n_samples, r, l, s) = (sig.len(), sig.u.ncols(), sig.y.ncols(), sig.p.ncols());
     let dims = PbsidDims::new(r, l, s, opts.past)?;
@@ -452,13 +577,9 @@ pub fn fit(sig: &Signals, opts: &PbsidOptions) -> Result<PbsidFit, FitError> {
     let windows = n_samples - p;
     let q = dims.q()?;
     let r_ft = if opts.feedthrough { r } else { 0 };
-    if !(opts.sched_weight > 0.0 && opts.sched_weight.is_finite()) {
-        return Err(FitError(format!(
-            "scheduling weight must be positive, got {}",
-            opts.sched_weight
-        )));
-    }
-    let (scaling, rows) = scale(sig, opts.sched_weight)?;
+    let f = check_options(&dims, windows, opts)?;
+    let scaling = ChannelSums::from_signals(sig, p).scaling(opts.sched_weight)?;
+    let rows = scaled_rows(sig, &scaling);
     let slab = Slab::new(&rows, r, l, m)?;
 
     // The cheaper exact form: operation counts of building + decomposing each.
@@ -497,35 +618,46 @@ pub fn fit(sig: &Signals, opts: &PbsidOptions) -> Result<PbsidFit, FitError> {
         )));
     }
 
-    let (gkz, lambda, dof) = match solver {
-        Solver::Dual => dual_gamma_kz(&dims, &slab, windows, opts)?,
-        _ => primal_gamma_kz(&dims, &slab, windows, opts)?,
-    };
-    let (sv, x) = gkz;
-    let max_n = opts.max_order.min(sv.len()).min(windows / 2).max(1);
-    let (order, order_reason) = match opts.order {
-        Order::Fixed(n) => {
-            if n > sv.len() {
-                return Err(FitError(format!(
-                    "order {n} exceeds p*l = {} singular values: increase the past window",
-                    sv.len()
-                )));
+    // Candidate states for windows 0..=N-p (the last one only as the successor state).
+    let (sv, x, reg) = match solver {
+        Solver::Dual => dual_states(&dims, f, &slab, windows, opts)?,
+        _ => {
+            let len = stat_vector_len(&dims, StatsLayout::Plain)?;
+            let mut gram = Gram::new(len, vec![0.0; packed_len(len)])?;
+            const BATCH: usize = 16;
+            let mut buf = vec![0.0; BATCH * len];
+            let mut k = 0;
+            while k < windows {
+                let nb = BATCH.min(windows - k);
+                for b in 0..nb {
+                    let row = &mut buf[b * len..(b + 1) * len];
+                    write_stat_vector(&dims, StatsLayout::Plain, &slab, k + b, row);
+                }
+                gram.update_batch(&buf[..nb * len], nb)?;
+                k += nb;
             }
-            (n, format!("order {n} given"))
+            let stats = dense(&gram, len);
+            let (reg, sv, t) = primal_regression_svd(&dims, f, &stats, windows, opts)?;
+            let mut x = DMatrix::zeros(t.nrows(), windows + 1);
+            let mut z = vec![0.0; q];
+            for k in 0..=windows {
+                write_pbsid_regressor(&dims, &slab, k, &mut z);
+                x.set_column(k, &(&t * DVector::from_column_slice(&z)));
+            }
+            (sv, x, reg)
         }
-        Order::Auto => select_order(&sv, max_n),
     };
+    let (order, order_reason) = choose_order(&sv, windows, opts)?;
     let states = x.rows(0, order).into_owned();
-    let scaled = realize(&dims, &slab, &states, opts.feedthrough)?;
+    let scaled = realize_from_states(&dims, &slab, &states, opts.feedthrough)?;
     let model = unscale(&scaled, &scaling);
-    let lambda_rel = lambda.map(|(lam, vmax)| if vmax > 0.0 { lam / vmax } else { 0.0 });
     Ok(PbsidFit {
         model,
         singular_values: sv,
         order,
         order_reason,
-        lambda: lambda_rel,
-        dof,
+        lambda: reg.lambda_rel(),
+        dof: reg.dof,
         solver,
         solver_reason,
         q,
@@ -534,8 +666,87 @@ pub fn fit(sig: &Signals, opts: &PbsidOptions) -> Result<PbsidFit, FitError> {
     })
 }
 
-/// (singular values, U^T Gamma K Z rows = candidate states), (lambda, lambda_max), dof.
-type GammaKz = ((Vec<f64>, DMatrix<f64>), Option<(f64, f64)>, f64);
+/// Identify from statistics alone (a device's pull, or merged experiments): the Gram of the
+/// `Extended` statistic vectors of raw (unscaled) samples. Scaling is applied to the
+/// statistics (D G D), regression (13) and the SVD are the primal ones of [`fit`], and the
+/// realization's least squares use moments that are linear maps of the statistics, so the
+/// model equals the file-based primal fit of the same samples up to rounding.
+pub fn fit_from_stats<S: AsRef<[f64]> + AsMut<[f64]>>(
+    gram: &Gram<f64, S>,
+    dims: &PbsidDims,
+    opts: &PbsidOptions,
+) -> Result<PbsidFit, FitError> {
+    let layout = StatsLayout::Extended;
+    let len = stat_vector_len(dims, layout)?;
+    if gram.dim() != len {
+        return Err(FitError(format!(
+            "statistics of dimension {} do not match the extended layout for r={}, l={}, s={}, p={} (expected {len})",
+            gram.dim(),
+            dims.r,
+            dims.l,
+            dims.s,
+            dims.p
+        )));
+    }
+    let sums = ChannelSums::from_stats(gram, dims, layout)?;
+    let windows = sums.count.round() as usize;
+    if opts.past != dims.p {
+        return Err(FitError(format!(
+            "the statistics were accumulated with past window {}, not {}",
+            dims.p, opts.past
+        )));
+    }
+    let f = check_options(dims, windows, opts)?;
+    let scaling = sums.scaling(opts.sched_weight)?;
+    let dvec = stat_scale_vector(dims, layout, &scaling)?;
+    let mut g = dense(gram, len);
+    for i in 0..len {
+        for j in 0..len {
+            g[(i, j)] *= dvec[i] * dvec[j];
+        }
+    }
+    let d = dims.stat_len()?;
+    let plain = g.view((0, 0), (d, d)).into_owned();
+    let (reg, sv, t) = primal_regression_svd(dims, f, &plain, windows, opts)?;
+    let (order, order_reason) = choose_order(&sv, windows, opts)?;
+    let t = t.rows(0, order).into_owned();
+    let gv = g.view((0, 0), (d * dims.m(), d * dims.m())).into_owned();
+    let scaled = realize_from_stats(dims, &t, &gv, opts.feedthrough)?;
+    let model = unscale(&scaled, &scaling);
+    Ok(PbsidFit {
+        model,
+        singular_values: sv,
+        order,
+        order_reason,
+        lambda: reg.lambda_rel(),
+        dof: reg.dof,
+        solver: Solver::Primal,
+        solver_reason: "from statistics (primal form)".into(),
+        q: dims.q()?,
+        windows,
+        scaling,
+    })
+}
+
+/// The dense symmetric matrix of a Gram's leading `len` rows and columns.
+fn dense<S: AsRef<[f64]> + AsMut<[f64]>>(g: &Gram<f64, S>, len: usize) -> DMatrix<f64> {
+    DMatrix::from_fn(len, len, |i, j| g.get(i, j))
+}
+
+/// Outcome of the regularised regression.
+struct RegressionInfo {
+    /// (lambda, largest Gram eigenvalue), None for the minimum-norm solution.
+    lambda: Option<(f64, f64)>,
+    /// Effective number of parameters per output.
+    dof: f64,
+}
+
+impl RegressionInfo {
+    fn lambda_rel(&self) -> Option<f64> {
+        self.lambda
+            .map(|(lam, vmax)| if vmax > 0.0 { lam / vmax } else { 0.0 })
+    }
+}
 
 /// SVD of Gamma^p K^p Z (eq. (15)) through the eigendecomposition of its Gram
 /// (Gamma K Z)(Gamma K Z)^T, which both forms can build. Returns the singular values and
@@ -546,39 +757,24 @@ fn svd_left(w: &DMatrix<f64>) -> Result<(Vec<f64>, DMatrix<f64>), FitError> {
     Ok((sv, vecs))
 }
 
-/// Primal path: the core's statistics of w_k = [z_k^p; u_{k+p}; y_{k+p}], regression (13)
-/// from them, Gamma^p K^p by eq. (14), and the states x_{k+p} = U_n^T Gamma^p K^p z_k^p
-/// (eq. (16): Sigma_n V = U_n^T Gamma K Z).
-fn primal_gamma_kz(
+/// Primal path on the (scaled) plain statistics `stats` of w_k = [z_k^p; u_{k+p}; y_{k+p}]:
+/// regression (13) from them, Gamma^p K^p by eq. (14), the SVD of Gamma K Z from
+/// Gamma K S_zz (Gamma K)^T, and T = U^T Gamma^p K^p so that the state candidates are
+/// x_{k+p} = T z_k^p (eq. (16): Sigma_n V = U_n^T Gamma K Z).
+fn primal_regression_svd(
     dims: &PbsidDims,
-    slab: &Slab<'_, f64>,
+    f: usize,
+    stats: &DMatrix<f64>,
     windows: usize,
     opts: &PbsidOptions,
-) -> Result<GammaKz, FitError> {
+) -> Result<(RegressionInfo, Vec<f64>, DMatrix<f64>), FitError> {
     let (r, l) = (dims.r, dims.l);
     let q = dims.q()?;
-    let len = stat_vector_len(dims, StatsLayout::Plain)?;
-    let mut gram = Gram::new(len, vec![0.0; packed_len(len)])?;
-    const BATCH: usize = 16;
-    let mut buf = vec![0.0; BATCH * len];
-    let mut k = 0;
-    while k < windows {
-        let nb = BATCH.min(windows - k);
-        for b in 0..nb {
-            let row = &mut buf[b * len..(b + 1) * len];
-            write_stat_vector(dims, StatsLayout::Plain, slab, k + b, row);
-        }
-        gram.update_batch(&buf[..nb * len], nb)?;
-        k += nb;
-    }
-    let mut dense = vec![0.0; len * len];
-    gram.write_dense(&mut dense)?;
-    let s_all = DMatrix::from_row_slice(len, len, &dense);
     let r_ft = if opts.feedthrough { r } else { 0 };
     let qf = q + r_ft;
-    let s_ff = s_all.view((0, 0), (qf, qf)).into_owned();
-    let s_fy = s_all.view((0, q + r), (qf, l)).into_owned();
-    let syy: f64 = (0..l).map(|j| s_all[(q + r + j, q + r + j)]).sum();
+    let s_ff = stats.view((0, 0), (qf, qf)).into_owned();
+    let s_fy = stats.view((0, q + r), (qf, l)).into_owned();
+    let syy: f64 = (0..l).map(|j| stats[(q + r + j, q + r + j)]).sum();
     let (vals, vecs) = sym_eig(&s_ff)?;
     let b = vecs.transpose() * &s_fy; // qf x l
     let energy: Vec<f64> = (0..qf)
@@ -603,25 +799,17 @@ fn primal_gamma_kz(
     }
     let theta = (vecs * scaled_b).transpose(); // l x qf
     let ck = theta.columns(0, q).into_owned();
-    let f = future(dims, opts)?;
     let gk = gamma_k(dims, f, &ck);
-    let s_zz = s_all.view((0, 0), (q, q));
+    let s_zz = stats.view((0, 0), (q, q));
     let w = &gk * s_zz * gk.transpose();
     let (sv, u) = svd_left(&w)?;
-    let t = u.transpose() * &gk; // (p l) x q, rows ordered by singular value
-    let mut x = DMatrix::zeros(f * l, windows);
-    let mut z = vec![0.0; q];
-    for k in 0..windows {
-        write_pbsid_regressor(dims, slab, k, &mut z);
-        let zv = DVector::from_column_slice(&z);
-        x.set_column(k, &(&t * zv));
-    }
+    let t = u.transpose() * &gk;
     let vmax = vals.first().copied().unwrap_or(0.0);
     let lambda = match opts.reg {
         Reg::None => None,
         _ => Some((lam, vmax)),
     };
-    Ok(((sv, x), lambda, dof))
+    Ok((RegressionInfo { lambda, dof }, sv, t))
 }
 
 /// The future window f (default p), checked.
@@ -637,14 +825,15 @@ fn future(dims: &PbsidDims, opts: &PbsidOptions) -> Result<usize, FitError> {
 }
 
 /// Dual path (Algorithm 2): kernel Z^T Z + U^T U by Theorem 10, alpha from (19)-(21)
-/// (Tikhonov-regularised if asked), Gamma^p K^p Z by eq. (25), and the states
-/// Sigma_n V = U_n^T Gamma K Z.
-fn dual_gamma_kz(
+/// (Tikhonov-regularised if asked), Gamma^p K^p Z by eq. (25), and the state candidates
+/// U^T Gamma K Z for windows 0..=N-p (the SVD uses the N-p regression windows).
+fn dual_states(
     dims: &PbsidDims,
+    f: usize,
     slab: &Slab<'_, f64>,
     windows: usize,
     opts: &PbsidOptions,
-) -> Result<GammaKz, FitError> {
+) -> Result<(Vec<f64>, DMatrix<f64>, RegressionInfo), FitError> {
     let (p, l) = (dims.p, dims.l);
     let nb = windows;
     let mut g = DMatrix::<f64>::zeros(nb, nb);
@@ -671,8 +860,9 @@ fn dual_gamma_kz(
         scaled.row_mut(i).scale_mut(filter(v, lam, cut));
     }
     let alpha = (vecs * scaled).transpose(); // l x nb
-    let gkz = dual_gamma_kz_matrix(dims, future(dims, opts)?, slab, &alpha);
-    let w = &gkz * gkz.transpose();
+    let gkz = dual_gamma_kz_matrix(dims, f, slab, &alpha, nb + 1);
+    let reg_cols = gkz.columns(0, nb);
+    let w = reg_cols * reg_cols.transpose();
     let (sv, u) = svd_left(&w)?;
     let x = u.transpose() * gkz;
     let vmax = vals.first().copied().unwrap_or(0.0);
@@ -680,17 +870,19 @@ fn dual_gamma_kz(
         Reg::None => None,
         _ => Some((lam, vmax)),
     };
-    Ok(((sv, x), lambda, dof))
+    Ok((sv, x, RegressionInfo { lambda, dof }))
 }
 
 /// Eq. (25): row block i of Gamma^p K^p Z is alpha sum_{j >= i} (Z^{i,j})^T Z^{1,j}. Entry
 /// (a, b) of that kernel is Theorem 10 between the window starting at a - i + 1 and window
 /// b, summed over t0 >= i - 1; one backward pass over t gives it for every i at once.
+/// Columns are windows b = 0..cols (a window needs only its p samples, not a target).
 pub fn dual_gamma_kz_matrix(
     dims: &PbsidDims,
     f: usize,
     slab: &Slab<'_, f64>,
     alpha: &DMatrix<f64>,
+    cols: usize,
 ) -> DMatrix<f64> {
     let (p, l) = (dims.p, dims.l);
     let nb = alpha.ncols();
@@ -703,11 +895,11 @@ pub fn dual_gamma_kz_matrix(
     let gz = DMatrix::from_fn(n_samples, n_samples, |a, b| {
         lpvid::real::dot(&slab.z(a)[..nz], &slab.z(b)[..nz])
     });
-    let mut out = DMatrix::zeros(f * l, nb);
+    let mut out = DMatrix::zeros(f * l, cols);
     let mut ks = vec![0.0; p];
     // window start s of the shifted window, from -(p-1) to nb-1
     for s in -(p as isize - 1)..(nb as isize) {
-        for b in 0..nb {
+        for b in 0..cols {
             let mut acc = 0.0;
             let mut prod = 1.0;
             for t in (0..p).rev() {
@@ -743,10 +935,59 @@ pub fn dual_gamma_kz_matrix(
     out
 }
 
-/// Section 4.3: with the states, C and D from y_k = C x_k + D u_k + e_k, then A^(i), B^(i),
-/// K^(i) from x_{k+1} = sum_i mu_k^(i) (A^(i) x_k + B^(i) u_k + K^(i) e_k), both by least
-/// squares on the core's Gram statistics. `states` column k is x_{k+p} (window k).
-pub fn realize(
+/// Section 4.3, output equation: C and D from the normal equations of
+/// y_k = C x_k + D u_k + e_k (regressors [x; u] or [x] without feedthrough).
+fn solve_cd(
+    s_ff: &DMatrix<f64>,
+    s_fy: &DMatrix<f64>,
+    n: usize,
+    r: usize,
+    feedthrough: bool,
+) -> Result<(DMatrix<f64>, DMatrix<f64>), FitError> {
+    let (cd, _) = min_norm_from_normal(s_ff, &s_fy.transpose(), 1e-12)?;
+    let l = cd.nrows();
+    let c = cd.columns(0, n).into_owned();
+    let d = if feedthrough {
+        cd.columns(n, r).into_owned()
+    } else {
+        DMatrix::zeros(l, r)
+    };
+    Ok((c, d))
+}
+
+/// Section 4.3, state equation: A^(i), B^(i), K^(i) from the normal equations of
+/// x_{k+1} = [A^(1) B^(1) K^(1) | ... | A^(m) B^(m) K^(m)] (mu_k (x) [x_k; u_k; e_k]).
+fn solve_abk(
+    s_ff: &DMatrix<f64>,
+    s_fy: &DMatrix<f64>,
+    c: DMatrix<f64>,
+    d: DMatrix<f64>,
+    m: usize,
+) -> Result<LpvSs, FitError> {
+    let (l, n) = (c.nrows(), c.ncols());
+    let r = d.ncols();
+    let nxi = n + r + l;
+    let (abk, _) = min_norm_from_normal(s_ff, &s_fy.transpose(), 1e-12)?;
+    let mut model = LpvSs {
+        a: vec![],
+        b: vec![],
+        k: vec![],
+        c: vec![c],
+        d: vec![d],
+    };
+    for i in 0..m {
+        let o = i * nxi;
+        model.a.push(abk.columns(o, n).into_owned());
+        model.b.push(abk.columns(o + n, r).into_owned());
+        model.k.push(abk.columns(o + n + r, l).into_owned());
+    }
+    Ok(model)
+}
+
+/// Section 4.3 with the states at hand: `states` column k is x_{k+p} of window k, for
+/// windows 0..=N-p (the last one only as a successor). The normal equations are accumulated
+/// with the core's Gram.
+pub fn realize_from_states(
     dims: &PbsidDims,
     slab: &Slab<'_, f64>,
     states: &DMatrix<f64>,
@@ -754,9 +995,8 @@ pub fn realize(
 ) -> Result<LpvSs, FitError> {
     let (p, r, l, m) = (dims.p, dims.r, dims.l, dims.m());
     let n = states.nrows();
-    let nb = states.ncols();
+    let nb = states.ncols() - 1;
     let r_ft = if feedthrough { r } else { 0 };
-    // Output equation.
     let dcd = n + r_ft + l;
     let mut g1 = Gram::new(dcd, vec![0.0; packed_len(dcd)])?;
     let mut row = vec![0.0; dcd];
@@ -767,20 +1007,13 @@ pub fn realize(
         g1.update(&row)?;
     }
     let (s1_ff, s1_fy) = split_gram(&g1, n + r_ft);
-    let (cd, _) = min_norm_from_normal(&s1_ff, &s1_fy.transpose(), 1e-12)?;
-    let c = cd.columns(0, n).into_owned();
-    let d = if feedthrough {
-        cd.columns(n, r).into_owned()
-    } else {
-        DMatrix::zeros(l, r)
-    };
-    // State equation on the innovation estimates.
+    let (c, d) = solve_cd(&s1_ff, &s1_fy, n, r, feedthrough)?;
     let nxi = n + r + l;
     let dst = m * nxi + n;
     let mut g2 = Gram::new(dst, vec![0.0; packed_len(dst)])?;
     let mut row = vec![0.0; dst];
     let mut xi = vec![0.0; nxi];
-    for k in 0..nb.saturating_sub(1) {
+    for k in 0..nb {
         let x = states.column(k);
         let u = slab.u(k + p);
         let y = slab.y(k + p);
@@ -798,21 +1031,83 @@ pub fn realize(
         g2.update(&row)?;
     }
     let (s2_ff, s2_fy) = split_gram(&g2, m * nxi);
-    let (abk, _) = min_norm_from_normal(&s2_ff, &s2_fy.transpose(), 1e-12)?;
-    let mut model = LpvSs {
-        a: vec![],
-        b: vec![],
-        k: vec![],
-        c: vec![c],
-        d: vec![d],
-    };
-    for i in 0..m {
-        let o = i * nxi;
-        model.a.push(abk.columns(o, n).into_owned());
-        model.b.push(abk.columns(o + n, r).into_owned());
-        model.k.push(abk.columns(o + n + r, l).into_owned());
+    solve_abk(&s2_ff, &s2_fy, c, d, m)
+}
+
+/// Section 4.3 from statistics: with x_{k+p} = T z_k^p, every regressor and target of the
+/// two least-squares problems is a linear map of v_k = mu_{k+p} (x) w_k (block 0 is w_k;
+/// z_{k+1}^p is a selection of v_k), so their normal equations are L G_v L^T.
+pub fn realize_from_stats(
+    dims: &PbsidDims,
+    t: &DMatrix<f64>,
+    gv: &DMatrix<f64>,
+    feedthrough: bool,
+) -> Result<LpvSs, FitError> {
+    let (r, l, m) = (dims.r, dims.l, dims.m());
+    let q = dims.q()?;
+    let d = q + r + l;
+    let n = t.nrows();
+    let r_ft = if feedthrough { r } else { 0 };
+    let sww = gv.view((0, 0), (d, d));
+    // output equation: [x; u] = L1 w, y = Ly w
+    let mut l1 = DMatrix::zeros(n + r_ft, d);
+    l1.view_mut((0, 0), (n, q)).copy_from(t);
+    for j in 0..r_ft {
+        l1[(n + j, q + j)] = 1.0;
     }
-    Ok(model)
+    let mut ly = DMatrix::zeros(l, d);
+    for j in 0..l {
+        ly[(j, q + r + j)] = 1.0;
+    }
+    let s1_ff = &l1 * sww * l1.transpose();
+    let s1_fy = &l1 * sww * ly.transpose();
+    let (c, dm) = solve_cd(&s1_ff, &s1_fy, n, r, feedthrough)?;
+    // xi = [x; u; e] = Xi w with e = y - C x - D u
+    let nxi = n + r + l;
+    let mut xi = DMatrix::zeros(nxi, d);
+    xi.view_mut((0, 0), (n, q)).copy_from(t);
+    for j in 0..r {
+        xi[(n + j, q + j)] = 1.0;
+    }
+    let ct = &c * t;
+    for j in 0..l {
+        for i in 0..q {
+            xi[(n + r + j, i)] = -ct[(j, i)];
+        }
+        for i in 0..r {
+            xi[(n + r + j, q + i)] = -dm[(j, i)];
+        }
+        xi[(n + r + j, q + r + j)] = 1.0;
+    }
+    // regressors: block i of mu (x) xi = Xi (block i of v)
+    let vlen = d * m;
+    let mut phi = DMatrix::zeros(m * nxi, vlen);
+    for i in 0..m {
+        phi.view_mut((i * nxi, i * d), (nxi, d)).copy_from(&xi);
+    }
+    // target: x_{k+p+1} = T z_{k+1}^p, z_{k+1}^p a selection of v
+    let mut x2 = DMatrix::zeros(n, vlen);
+    let nz = dims.nz();
+    for j in 1..=dims.p {
+        let dst0 = dims.block_offset(j);
+        let (src_off, inner) = if j < dims.p {
+            (dims.block_offset(j + 1), dims.block_len(j + 1))
+        } else {
+            (q, nz)
+        };
+        for i in 0..m {
+            for tt in 0..inner {
+                let dst = dst0 + i * inner + tt;
+                let src = i * d + src_off + tt;
+                for row in 0..n {
+                    x2[(row, src)] += t[(row, dst)];
+                }
+            }
+        }
+    }
+    let s2_ff = &phi * gv * phi.transpose();
+    let s2_fy = &phi * gv * x2.transpose();
+    solve_abk(&s2_ff, &s2_fy, c, dm, m)
 }
 
 /// Split a Gram of [phi; target] into (S_phiphi, S_phitarget).

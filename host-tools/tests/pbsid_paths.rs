@@ -1,0 +1,81 @@
+//! The three exact forms of LPV-PBSID_opt agree: primal statistics with a data pass,
+//! kernel (dual) form, and statistics alone (the device's path).
+
+use lpvid::{PbsidDims, PbsidStats, StatsLayout};
+use lpvid_host::lpvss::Signals;
+use lpvid_host::pbsid::{fit, fit_from_stats, Order, PbsidOptions, Reg, Solver};
+use lpvid_host::systems;
+
+fn extended_stats(sig: &Signals, p: usize) -> PbsidStats<f64, Vec<f64>, Vec<f64>, Vec<f64>> {
+    let dims = PbsidDims::new(sig.u.ncols(), sig.y.ncols(), sig.p.ncols(), p).unwrap();
+    let len = lpvid::stat_vector_len(&dims, StatsLayout::Extended).unwrap();
+    let mut st = PbsidStats::with_storage(
+        dims,
+        StatsLayout::Extended,
+        vec![0.0; lpvid::window_storage_len(dims.r, dims.l, dims.s, p)],
+        vec![0.0; lpvid::packed_len(len)],
+        vec![0.0; len],
+    )
+    .unwrap();
+    for k in 0..sig.len() {
+        let u: Vec<f64> = sig.u.row(k).iter().copied().collect();
+        let y: Vec<f64> = sig.y.row(k).iter().copied().collect();
+        let pp: Vec<f64> = sig.p.row(k).iter().copied().collect();
+        st.update(&u, &y, &pp).unwrap();
+    }
+    st
+}
+
+fn max_output_diff(
+    a: &lpvid_host::lpvss::LpvSs,
+    b: &lpvid_host::lpvss::LpvSs,
+    sig: &Signals,
+) -> f64 {
+    let ya = a.simulate(sig, None);
+    let yb = b.simulate(sig, None);
+    (ya - &yb).amax() / sig.y.amax()
+}
+
+#[test]
+fn stats_only_fit_equals_file_fit() {
+    for (exp, p) in [(systems::b2(300, 25.0, 3), 3), (systems::b3(250, 4), 2)] {
+        for reg in [Reg::None, Reg::TikhonovGcv] {
+            let mut o = PbsidOptions::new(p);
+            o.reg = reg;
+            o.solver = Solver::Primal;
+            let file = fit(&exp.train, &o).unwrap();
+            let st = extended_stats(&exp.train, p);
+            let dims = st.dims();
+            let stats = fit_from_stats(st.gram(), &dims, &o).unwrap();
+            assert_eq!(file.order, stats.order, "{}", exp.name);
+            for (a, b) in file.singular_values.iter().zip(&stats.singular_values) {
+                assert!((a - b).abs() <= 1e-8 * file.singular_values[0], "{a} {b}");
+            }
+            let diff = max_output_diff(&file.model, &stats.model, &exp.val);
+            assert!(
+                diff < 1e-7,
+                "{} {reg:?}: relative output difference {diff}",
+                exp.name
+            );
+        }
+    }
+}
+
+#[test]
+fn kernel_form_equals_primal_form() {
+    let exp = systems::b3(250, 7);
+    for reg in [Reg::None, Reg::TikhonovGcv] {
+        let mut o = PbsidOptions::new(3);
+        o.reg = reg;
+        o.order = Order::Fixed(4);
+        o.solver = Solver::Primal;
+        let primal = fit(&exp.train, &o).unwrap();
+        o.solver = Solver::Dual;
+        let dual = fit(&exp.train, &o).unwrap();
+        for (a, b) in primal.singular_values.iter().zip(&dual.singular_values) {
+            assert!((a - b).abs() <= 1e-6 * primal.singular_values[0], "{a} {b}");
+        }
+        let diff = max_output_diff(&primal.model, &dual.model, &exp.val);
+        assert!(diff < 1e-5, "{reg:?}: relative output difference {diff}");
+    }
+}
