@@ -2,7 +2,8 @@
 # `make demo` runs the main job; `make test` runs every check CI runs.
 
 # Debian packages the build and the tests need (installed by scripts/setup.sh if missing).
-DEB_PACKAGES := pkg-config
+# libopenblas-dev: BLAS + LAPACK for clarabel's SDP cones (H-infinity observer LMI), linked by host-tools/build.rs.
+DEB_PACKAGES := pkg-config libopenblas-dev
 
 .PHONY: demo test setup check-fmt clippy core-thumb test-all bench
 
