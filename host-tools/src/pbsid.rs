@@ -175,6 +175,10 @@ pub struct PbsidFit {
     pub windows: usize,
     /// The scaling used.
     pub scaling: Scaling,
+    /// The estimated state sequence in the model's basis (the scaling does not change the
+    /// state): column k is x_{p+k}, k = 0..=N-p. `None` for a fit from statistics. The
+    /// observer design (eq. (24)-(25) of the sparse paper) takes its residuals from it.
+    pub states: Option<DMatrix<f64>>,
 }
 
 /// A fit that could not be made, with the reason in words.
@@ -663,6 +667,7 @@ pub fn fit(sig: &Signals, opts: &PbsidOptions) -> Result<PbsidFit, FitError> {
         q,
         windows,
         scaling,
+        states: Some(states),
     })
 }
 
@@ -725,6 +730,7 @@ pub fn fit_from_stats<S: AsRef<[f64]> + AsMut<[f64]>>(
         q: dims.q()?,
         windows,
         scaling,
+        states: None,
     })
 }
 
