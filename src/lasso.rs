@@ -381,17 +381,18 @@ impl<T: Real, S: AsRef<[T]> + AsMut<[T]>> CoordinateDescent<T, S> {
         let q = self.q;
         let g = prob.gram;
         let mut dmax = T::ZERO;
+        // O(q): only the diagonal is checked here, so a lazily evaluated G (large q, few
+        // active columns) is never expanded; a non-finite off-diagonal entry makes Theta or
+        // R non-finite and is reported as `NoConvergence` by the sweep that meets it.
         for i in 0..q {
-            for j in i..q {
-                let v = g.get(i, j);
-                if !v.is_finite() {
-                    return Err(Error::NonFinite {
-                        field: Field::Regressor,
-                        index: i * q + j,
-                    });
-                }
+            let v = g.get(i, i);
+            if !v.is_finite() {
+                return Err(Error::NonFinite {
+                    field: Field::Regressor,
+                    index: i * q + i,
+                });
             }
-            dmax = dmax.max(g.get(i, i).abs());
+            dmax = dmax.max(v.abs());
         }
         let flat = dmax * T::EPSILON * T::of(q as f64);
         let mut s0 = T::ZERO;
@@ -594,7 +595,10 @@ impl<T: Real, S: AsRef<[T]> + AsMut<[T]>> CoordinateDescent<T, S> {
                     added += 1;
                 }
             }
-            if !dmax.is_finite() || first_non_finite(theta).is_some() {
+            if !dmax.is_finite()
+                || first_non_finite(theta).is_some()
+                || first_non_finite(&self.work.as_ref()[..l * q]).is_some()
+            {
                 for v in theta.iter_mut() {
                     *v = T::ZERO;
                 }
