@@ -1,0 +1,2 @@
+//! Observer LMI benchmark (placeholder until observer.rs lands).
+fn main() {}
