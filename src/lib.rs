@@ -7,6 +7,7 @@
 //! - [`window`]: regressor windows, z_k^p of the kernel paper (Definitions 5-6, eq. (12)).
 //! - [`stats`]: second-moment statistics of problem (13), mergeable.
 //! - [`kernel`]: the kernels of Theorem 10 and the row blocks of eq. (25), never forming Z.
+//! - [`dictionary`]: streaming kernel dictionary (Algorithm 3 selection) and its projected normal equations.
 //! - [`arx`]: LPV-ARX regressors phi(k) = chi(k) (x) pbasis(k) (BC-IV paper, eq. (6)).
 //! - [`bciv`]: bias-corrected IV statistics, one matrix per power of sigma^2 (BC-IV paper, section 5).
 //! - [`lasso`]: coordinate-descent Lasso on statistics, l1 (BC-IV cost (10)) and l2,1 (sparse paper (33)).
@@ -18,6 +19,7 @@
 
 pub mod arx;
 pub mod bciv;
+pub mod dictionary;
 pub mod error;
 pub mod kernel;
 pub mod lasso;
