@@ -51,6 +51,17 @@ pub trait SymMatrix<T> {
     fn dim(&self) -> usize;
     /// Entry (i, j), i, j < dim.
     fn get(&self, i: usize, j: usize) -> T;
+    /// out[k] += alpha * G[j, k] for k < dim: the update a coordinate step makes. The
+    /// default reads entries one by one; a lazily evaluated G overrides it to fetch column
+    /// j once and run a vectorised loop.
+    fn add_scaled_column(&self, j: usize, alpha: T, out: &mut [T])
+    where
+        T: Real,
+    {
+        for (k, o) in out.iter_mut().enumerate() {
+            *o += alpha * self.get(j, k);
+        }
+    }
 }
 
 /// A dense symmetric matrix, row-major n x n (e.g. the H of the BC-IV normal equations).
@@ -457,9 +468,8 @@ impl<T: Real, S: AsRef<[T]> + AsMut<[T]>> CoordinateDescent<T, S> {
                 if t == T::ZERO {
                     continue;
                 }
-                for k in 0..q {
-                    r[o * q + k] -= t * prob.gram.get(j, k);
-                }
+                prob.gram
+                    .add_scaled_column(j, -t, &mut r[o * q..(o + 1) * q]);
             }
         }
     }
@@ -512,10 +522,7 @@ impl<T: Real, S: AsRef<[T]> + AsMut<[T]>> CoordinateDescent<T, S> {
             let delta = new - theta[idx];
             if delta != T::ZERO {
                 theta[idx] = new;
-                let row = &mut r[o * q..(o + 1) * q];
-                for (k, rk) in row.iter_mut().enumerate() {
-                    *rk -= delta * g.get(j, k);
-                }
+                g.add_scaled_column(j, -delta, &mut r[o * q..(o + 1) * q]);
                 change += gjj * delta * delta;
             }
         }

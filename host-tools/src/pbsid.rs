@@ -14,8 +14,10 @@ use lpvid::{
 };
 use nalgebra::{DMatrix, DVector};
 
+use crate::bpdn;
 use crate::linalg::{min_norm_from_normal, sym_eig};
 use crate::lpvss::{LpvSs, Signals};
+use lpvid::lasso::SymMatrix;
 
 /// Regularisation of problem (13).
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -26,6 +28,10 @@ pub enum Reg {
     TikhonovGcv,
     /// Tikhonov with a given parameter (relative to the largest eigenvalue of the Gram).
     Tikhonov(f64),
+    /// Sparse BPDN (33) with the AIC rule (34) (sparse paper section 4.2.1).
+    BpdnAic,
+    /// Sparse BPDN (33) with the validation-error rule of Algorithm 1 (section 4.2.2).
+    BpdnSv,
 }
 
 impl std::str::FromStr for Reg {
@@ -34,12 +40,14 @@ impl std::str::FromStr for Reg {
         match s {
             "none" => Ok(Reg::None),
             "tikhonov-gcv" => Ok(Reg::TikhonovGcv),
+            "bpdn-aic" => Ok(Reg::BpdnAic),
+            "bpdn-sv" => Ok(Reg::BpdnSv),
             t if t.starts_with("tikhonov=") => t[9..]
                 .parse::<f64>()
                 .map(Reg::Tikhonov)
                 .map_err(|e| format!("bad Tikhonov parameter in '{t}': {e}")),
             other => Err(format!(
-                "unknown regularisation '{other}' (expected none or tikhonov-gcv)"
+                "unknown regularisation '{other}' (expected none, tikhonov-gcv, bpdn-aic or bpdn-sv)"
             )),
         }
     }
@@ -435,7 +443,7 @@ fn choose_lambda(reg: Reg, spec: &Spectrum) -> (f64, f64, f64) {
     let vmax = spec.vals.iter().copied().fold(0.0, f64::max);
     let cut = vmax * RANK_TOL;
     let lam = match reg {
-        Reg::None => 0.0,
+        Reg::None | Reg::BpdnAic | Reg::BpdnSv => 0.0,
         Reg::TikhonovGcv => spec.gcv_lambda(cut),
         Reg::Tikhonov(rel) => rel * vmax,
     };
@@ -568,6 +576,16 @@ fn choose_order(
 /// Identify an LPV state-space model with LPV-PBSID_opt from data (Algorithm 1 with the
 /// primal statistics, or Algorithm 2 in the kernel form, whichever is cheaper).
 pub fn fit(sig: &Signals, opts: &PbsidOptions) -> Result<PbsidFit, FitError> {
+    fit_with_validation(sig, None, opts)
+}
+
+/// As [`fit`]; `val` is the validation data BPDN-SV scores its path on (without it, the
+/// last quarter of `sig`, as the sparse paper does). Other regularisations ignore it.
+pub fn fit_with_validation(
+    sig: &Signals,
+    val: Option<&Signals>,
+    opts: &PbsidOptions,
+) -> Result<PbsidFit, FitError> {
     let (n_samples, r, l, s) = (sig.len(), sig.u.ncols(), sig.y.ncols(), sig.p.ncols());
     let dims = PbsidDims::new(r, l, s, opts.past)?;
     let p = dims.p;
@@ -623,7 +641,26 @@ pub fn fit(sig: &Signals, opts: &PbsidOptions) -> Result<PbsidFit, FitError> {
     }
 
     // Candidate states for windows 0..=N-p (the last one only as the successor state).
+    let sparse = matches!(opts.reg, Reg::BpdnAic | Reg::BpdnSv);
+    let val_rows = match (opts.reg, val) {
+        (Reg::BpdnSv, Some(v)) => {
+            if v.u.ncols() != r || v.y.ncols() != l || v.p.ncols() != s {
+                return Err(FitError(
+                    "the validation data have other signals than the training data".into(),
+                ));
+            }
+            Some(scaled_rows(v, &scaling))
+        }
+        _ => None,
+    };
+    let mut solver_reason = solver_reason;
     let (sv, x, reg) = match solver {
+        _ if sparse => {
+            let (sv, x, reg, why) =
+                bpdn_states(&dims, f, &slab, windows, val_rows.as_deref(), opts)?;
+            solver_reason = format!("sparse form with explicit regressors ({why})");
+            (sv, x, reg)
+        }
         Solver::Dual => dual_states(&dims, f, &slab, windows, opts)?,
         _ => {
             let len = stat_vector_len(&dims, StatsLayout::Plain)?;
@@ -812,7 +849,7 @@ fn primal_regression_svd(
     let t = u.transpose() * &gk;
     let vmax = vals.first().copied().unwrap_or(0.0);
     let lambda = match opts.reg {
-        Reg::None => None,
+        Reg::None | Reg::BpdnAic | Reg::BpdnSv => None,
         _ => Some((lam, vmax)),
     };
     Ok((RegressionInfo { lambda, dof }, sv, t))
@@ -873,10 +910,138 @@ fn dual_states(
     let x = u.transpose() * gkz;
     let vmax = vals.first().copied().unwrap_or(0.0);
     let lambda = match opts.reg {
-        Reg::None => None,
+        Reg::None | Reg::BpdnAic | Reg::BpdnSv => None,
         _ => Some((lam, vmax)),
     };
     Ok((sv, x, RegressionInfo { lambda, dof }))
+}
+
+/// Sparse path (sparse paper section 4.2): [C K^p, D] by the group-lasso path with the
+/// BPDN-AIC or BPDN-SV rule on explicit regressors, then Gamma^p K^p by eq. (14), the SVD
+/// of Gamma K Z over the training windows and the state candidates for windows 0..=N-p.
+fn bpdn_states(
+    dims: &PbsidDims,
+    f: usize,
+    slab: &Slab<'_, f64>,
+    windows: usize,
+    val_rows: Option<&[f64]>,
+    opts: &PbsidOptions,
+) -> Result<(Vec<f64>, DMatrix<f64>, RegressionInfo, String), FitError> {
+    let (p, l) = (dims.p, dims.l);
+    let q = dims.q()?;
+    let rule = match opts.reg {
+        Reg::BpdnAic => bpdn::Rule::Aic,
+        _ => bpdn::Rule::Sv,
+    };
+    let val_slab = match val_rows {
+        Some(rows) => Some(Slab::new(rows, dims.r, dims.l, dims.m())?),
+        None => None,
+    };
+    // identification and validation windows
+    let (id_windows, val_windows): (Vec<usize>, Vec<usize>) = match (rule, &val_slab) {
+        (bpdn::Rule::Sv, Some(vs)) => {
+            if vs.len() < p + 2 {
+                return Err(FitError(
+                    "the validation data are shorter than the window".into(),
+                ));
+            }
+            ((0..windows).collect(), (0..vs.len() - p).collect())
+        }
+        (bpdn::Rule::Sv, None) => {
+            // the first three quarters identify, windows inside the last quarter validate
+            let n_id = (3 * slab.len()) / 4;
+            let id: Vec<usize> = (0..windows).filter(|k| k + p < n_id).collect();
+            let val: Vec<usize> = (0..windows).filter(|&k| k >= n_id).collect();
+            (id, val)
+        }
+        (bpdn::Rule::Aic, _) => ((0..windows).collect(), vec![]),
+    };
+    if id_windows.len() < 2 || (rule == bpdn::Rule::Sv && val_windows.len() < 2) {
+        return Err(FitError(format!(
+            "{} identification and {} validation windows: too few samples for BPDN with a past window of {p}",
+            id_windows.len(),
+            val_windows.len()
+        )));
+    }
+    let (id, y_id) = bpdn::LazyGram::build(dims, slab, &id_windows, opts.feedthrough)?;
+    let val = match rule {
+        bpdn::Rule::Sv => {
+            let src = val_slab.as_ref().unwrap_or(slab);
+            Some(bpdn::LazyGram::build(
+                dims,
+                src,
+                &val_windows,
+                opts.feedthrough,
+            )?)
+        }
+        bpdn::Rule::Aic => None,
+    };
+    // residual of the unregularised (minimum-norm) solution, for rule (34), from the kernel
+    let rss_unreg = if rule == bpdn::Rule::Aic {
+        let nid = id_windows.len();
+        let g = DMatrix::from_fn(nid, nid, |a, b| {
+            dual_kernel(
+                slab,
+                id_windows[a],
+                slab,
+                id_windows[b],
+                p,
+                opts.feedthrough,
+            )
+        });
+        let (vals, vecs) = sym_eig(&g)?;
+        let y = DMatrix::from_row_slice(l, nid, &y_id);
+        let bd = vecs.transpose() * y.transpose();
+        let spec = Spectrum {
+            energy: (0..nid).map(|i| bd.row(i).norm_squared()).collect(),
+            vals,
+            total: y.norm_squared(),
+            rows: nid as f64,
+        };
+        let vmax = spec.vals.iter().copied().fold(0.0, f64::max);
+        spec.rss_dof(0.0, vmax * RANK_TOL).0
+    } else {
+        0.0
+    };
+    let sel = bpdn::select(
+        &id,
+        &y_id,
+        l,
+        rule,
+        val.as_ref().map(|(g, y)| (g, y.as_slice())),
+        rss_unreg,
+    )?;
+    let qf = id.dim();
+    let mut theta = sel.theta.clone();
+    let mut reason = sel.reason.clone();
+    if rule == bpdn::Rule::Sv && val_slab.is_none() {
+        // the penalty was chosen on the split; estimate with it on every window (the loss
+        // is a sum over windows, so lambda scales with their number)
+        let all: Vec<usize> = (0..windows).collect();
+        let (g_all, y_all) = bpdn::LazyGram::build(dims, slab, &all, opts.feedthrough)?;
+        let lam = sel.lambda_abs * windows as f64 / id_windows.len() as f64;
+        let active = bpdn::solve_at(&g_all, &y_all, l, lam, &mut theta)?;
+        reason.push_str(&format!(
+            "; refit on all {windows} windows at that penalty: {active} active columns"
+        ));
+    }
+    let ck = DMatrix::from_fn(l, q, |o, j| theta[o * qf + j]);
+    let gk = gamma_k(dims, f, &ck);
+    let mut gkz = DMatrix::zeros(f * l, windows + 1);
+    let mut z = vec![0.0; q];
+    for k in 0..=windows {
+        write_pbsid_regressor(dims, slab, k, &mut z);
+        gkz.set_column(k, &(&gk * DVector::from_column_slice(&z)));
+    }
+    let reg_cols = gkz.columns(0, windows);
+    let w = reg_cols * reg_cols.transpose();
+    let (sv, u) = svd_left(&w)?;
+    let x = u.transpose() * gkz;
+    let info = RegressionInfo {
+        lambda: Some((sel.lambda, 1.0)),
+        dof: sel.active as f64,
+    };
+    Ok((sv, x, info, reason))
 }
 
 /// Eq. (25): row block i of Gamma^p K^p Z is alpha sum_{j >= i} (Z^{i,j})^T Z^{1,j}. Entry
