@@ -11,6 +11,7 @@ use serde_json::{json, Value};
 use crate::data::{DataError, Dataset};
 use crate::metrics::{bfr_per_output, mean, vaf_per_output};
 use crate::model::{ModelFile, ModelKind, SignalMap};
+use crate::observer::{self, ObserverRequest};
 use crate::pbsid::{self, Order, PbsidFit, PbsidOptions, Reg, Solver};
 use crate::simulate::{simulate, Mode};
 
@@ -32,6 +33,8 @@ enum Command {
     Validate(ValidateArgs),
     /// Simulate a model on a data file and write its outputs as CSV.
     Simulate(SimulateArgs),
+    /// Frozen-scheduling stability region of a model's one-step predictor A(mu) - K(mu) C.
+    Stability(StabilityArgs),
 }
 
 #[derive(Debug, Args)]
@@ -70,9 +73,23 @@ struct PbsidArgs {
     /// Regularisation of the regression: none (minimum norm) or tikhonov-gcv.
     #[arg(long, default_value = "tikhonov-gcv")]
     reg: Reg,
-    /// Observer gain: ls (least squares K from the innovation estimates).
-    #[arg(long, default_value = "ls", value_parser = ["ls"])]
+    /// Observer gain: ls (least squares K from the innovation estimates) or hinf (the
+    /// H-infinity LMI (30) of the sparse paper over the vertices of the scheduling box, gains
+    /// (31); if it fails the least-squares gain is kept and the summary says why).
+    #[arg(long, default_value = "ls", value_parser = ["ls", "hinf"])]
     observer: String,
+    /// Operating range of a scheduling signal for the observer design and the stability
+    /// report, NAME=LO:HI (e.g. p1=-0.8:1.2); repeat or comma-separate; default: the
+    /// training data's range.
+    #[arg(
+        long = "scheduling-range",
+        value_name = "NAME=LO:HI",
+        allow_hyphen_values = true
+    )]
+    scheduling_range: Vec<String>,
+    /// Strictness margin of the LMIs (normalised units; see `lpvid_host::observer`).
+    #[arg(long, default_value_t = observer::DEFAULT_MARGIN)]
+    lmi_margin: f64,
     /// Assume D = 0 (no direct feedthrough).
     #[arg(long)]
     no_feedthrough: bool,
@@ -153,6 +170,7 @@ where
         Command::Pbsid(a) => pbsid_cmd(&a, out),
         Command::Validate(a) => validate_cmd(&a, out),
         Command::Simulate(a) => simulate_cmd(&a, out),
+        Command::Stability(a) => stability_cmd(&a, out),
     }
 }
 
@@ -313,20 +331,39 @@ struct PbsidRun {
     val_score: Option<Score>,
     samples: usize,
     dims: (usize, usize, usize),
+    observer: observer::ObserverStep,
 }
 
 fn run_pbsid(
     train: (&Path, &Dataset, &[u8]),
     val: Option<&Dataset>,
     opts: &PbsidOptions,
+    obs: &ObserverRequest,
 ) -> Result<PbsidRun, CliError> {
     let (path, ds, bytes) = train;
     let (map, sig) = training_signals(ds, opts.past)?;
     let fit = pbsid::fit(&sig, opts).map_err(|e| CliError::Other(format!("{}: {e}", ds.source)))?;
+    let names: Vec<String> = map
+        .scheduling
+        .iter()
+        .skip(1)
+        .map(|p| crate::model::describe(p))
+        .collect();
+    let obs_step = observer::observer_step(
+        &fit.model,
+        fit.states.as_ref(),
+        &sig,
+        opts.past,
+        &names,
+        obs,
+    )
+    .map_err(CliError::Other)?;
+    let mut record = fit_record(opts, &fit, path, ds, bytes);
+    obs_step.annotate(&mut record);
     let model = ModelFile {
-        kind: ModelKind::Ss(fit.model.clone()),
+        kind: ModelKind::Ss(obs_step.model.clone()),
         signals: map,
-        fit: fit_record(opts, &fit, path, ds, bytes),
+        fit: record,
     };
     let train_score = score(&model, ds, Mode::FreeRun)?;
     let val_score = match val {
@@ -340,6 +377,7 @@ fn run_pbsid(
         fit,
         train_score,
         val_score,
+        observer: obs_step,
     })
 }
 
@@ -392,6 +430,9 @@ fn print_pbsid(run: &PbsidRun, opts: &PbsidOptions, out: &mut dyn Write) -> std:
         )?;
     }
     writeln!(out, "  order n = {}: {}", f.order, f.order_reason)?;
+    for line in &run.observer.lines {
+        writeln!(out, "  {line}")?;
+    }
     for sc in std::iter::once(&run.train_score).chain(run.val_score.iter()) {
         writeln!(
             out,
@@ -419,6 +460,8 @@ fn pbsid_json(run: &PbsidRun, out_path: Option<&Path>) -> Value {
         "val": run.val_score,
         "out": out_path.map(|p| p.display().to_string()),
         "fit": run.model.fit,
+        "observer": run.observer.used,
+        "stability_region": run.observer.stability_json(),
     })
 }
 
@@ -442,7 +485,15 @@ fn pbsid_cmd(a: &PbsidArgs, out: &mut dyn Write) -> Result<(), CliError> {
         Some(p) => Some(Dataset::read_csv(p)?),
         None => None,
     };
-    let run = run_pbsid((&a.train, &ds, &bytes), val.as_ref(), &opts)?;
+    let obs = ObserverRequest {
+        hinf: a.observer == "hinf",
+        ranges: a.scheduling_range.clone(),
+        opts: observer::HinfOptions {
+            margin: a.lmi_margin,
+            ..Default::default()
+        },
+    };
+    let run = run_pbsid((&a.train, &ds, &bytes), val.as_ref(), &opts, &obs)?;
     run.model.write(&a.out)?;
     if a.json {
         writeln!(
@@ -471,6 +522,7 @@ fn demo(a: &DemoArgs, out: &mut dyn Write) -> Result<(), CliError> {
         (Path::new("fixtures/b1-train.csv"), &train, DEMO_TRAIN),
         Some(&val),
         &opts,
+        &ObserverRequest::default(),
     )?;
     if let Some(p) = &a.out {
         run.model.write(p)?;
@@ -556,6 +608,95 @@ fn simulate_cmd(a: &SimulateArgs, out: &mut dyn Write) -> Result<(), CliError> {
         ds.len(),
         yhat.ncols(),
         a.out.display()
+    )
+    .map_err(io_err)?;
+    Ok(())
+}
+
+#[derive(Debug, Args)]
+struct StabilityArgs {
+    /// Model file (JSON, type lpv-ss).
+    #[arg(long)]
+    model: PathBuf,
+    /// Data file whose scheduling range is the operating box and whose means hold the other
+    /// signals (default: the training range and means recorded in the model's `fit`).
+    #[arg(long)]
+    data: Option<PathBuf>,
+    /// Operating range NAME=LO:HI overriding the data's (repeat or comma-separate).
+    #[arg(long, value_name = "NAME=LO:HI", allow_hyphen_values = true)]
+    range: Vec<String>,
+    /// Print a JSON summary instead of the human one.
+    #[arg(long)]
+    json: bool,
+}
+
+/// `lpvid stability`: for each scheduling signal (the others at their mean) the interval
+/// around its mean where the frozen predictor A(mu) - K(mu) C(mu) has spectral radius < 1,
+/// and the largest spectral radius over the operating box.
+fn stability_cmd(a: &StabilityArgs, out: &mut dyn Write) -> Result<(), CliError> {
+    let model = ModelFile::read(&a.model)?;
+    let ss = match &model.kind {
+        ModelKind::Ss(m) => m,
+        _ => {
+            return Err(CliError::Other(format!(
+                "{}: the stability region is defined for lpv-ss models (A, K, C); this is an lpv-arx model",
+                a.model.display()
+            )))
+        }
+    };
+    let names: Vec<String> = model
+        .signals
+        .scheduling
+        .iter()
+        .skip(1)
+        .map(|p| crate::model::describe(p))
+        .collect();
+    let sig = match &a.data {
+        Some(p) => Some(model.signals.evaluate(&Dataset::read_csv(p)?)?),
+        None => None,
+    };
+    let rep = observer::stability_report(ss, &names, &model.fit, sig.as_ref(), &a.range)
+        .map_err(|e| CliError::Other(format!("{}: {e}", a.model.display())))?;
+    if a.json {
+        let mut v = rep.to_json();
+        if let Value::Object(o) = &mut v {
+            o.insert("command".into(), "stability".into());
+            o.insert("model".into(), a.model.display().to_string().into());
+            o.insert(
+                "observer".into(),
+                model.fit.get("observer").cloned().unwrap_or(Value::Null),
+            );
+        }
+        writeln!(out, "{}", serde_json::to_string_pretty(&v).unwrap()).map_err(io_err)?;
+        return Ok(());
+    }
+    let gamma = model
+        .fit
+        .get("observer")
+        .and_then(|o| o.get("gamma"))
+        .and_then(Value::as_f64);
+    writeln!(
+        out,
+        "{}: predictor A(mu) - K(mu) C, frozen scheduling (others at the {}){}",
+        a.model.display(),
+        rep.reference_source,
+        gamma
+            .map(|g| format!(", H-infinity gain with gamma = {g:.4e}"))
+            .unwrap_or_default()
+    )
+    .map_err(io_err)?;
+    for r in &rep.regions {
+        writeln!(out, "  {}", r.describe()).map_err(io_err)?;
+    }
+    writeln!(
+        out,
+        "  max spectral radius over the box: {:.4} ({})",
+        rep.max_rho,
+        if rep.max_rho < 1.0 {
+            "stable at every frozen point of the box"
+        } else {
+            "UNSTABLE somewhere in the box"
+        }
     )
     .map_err(io_err)?;
     Ok(())

@@ -14,6 +14,7 @@ pub mod linalg;
 pub mod lpvss;
 pub mod metrics;
 pub mod model;
+pub mod observer;
 pub mod pbsid;
 pub mod simulate;
 pub mod systems;

@@ -1,0 +1,1534 @@
+//! H-infinity observer gains for an identified LPV model (sparse paper,
+//! `papers/lpv-pbsid-sparse-bpdn-hinf-observer.md` section 3.4 and Appendix A): noise
+//! covariances from the least-squares residuals (eq. (24)-(25)), the LMI problem (30) over
+//! the vertices of the scheduling box solved with clarabel (PSD cones), the gains (31), an
+//! independent eigenvalue certificate of the solution, and the frozen-scheduling stability
+//! region of the predictor A(mu) - K(mu) C (Table 1).
+//!
+//! # What is solved, exactly
+//!
+//! Variables: the symmetric Lyapunov matrix P (n x n) and t = gamma^2. For every vertex
+//! mu of the box, with Abar(mu) = sum_i mu^(i) A^(i) - S R^-1 C, G = Qx^{1/2}
+//! (Qx = Q - S R^-1 S^T) and H = C^T R^-1 C,
+//! ```text
+//! M(mu) = [ P   0   P Abar(mu)   P G ]
+//!         [ *   I   I            0   ]
+//!         [ *   *   P + t H      0   ]   >  0,          P > I,          minimise t.
+//!         [ *   *   *            t I ]
+//! ```
+//! Strict inequalities are imposed with an explicit margin delta: `M(mu) - delta I` and
+//! `P - (1 + delta) I` in the PSD cone ([`HinfOptions::margin`], default
+//! [`DEFAULT_MARGIN`] = 1e-6, in the normalised units below). If our own eigenvalue check
+//! rejects the solver's answer, the design is repeated with the margin x100 (at most twice);
+//! the margin actually used is recorded.
+//!
+//! **Normalisation.** Q, S, R are divided by c = lambda_max([Q S; S^T R]) before solving.
+//! (30) is exactly invariant under (Q, S, R, t) -> (Q, S, R, t)/c (a congruence with
+//! diag(I, I, I, sqrt(c) I)), P and the gains are unchanged, and gamma^2 = c t. All
+//! eigenvalues reported by the certificate are of the normalised matrices.
+//!
+//! **Gains (31).** At a frozen mu the gain that the vertex condition certifies is
+//! K(mu) = (t A(mu) C_P + S)(t C C_P + R)^-1, C_P = (P - I)^-1 C^T, affine in mu. Written
+//! as sum_i mu^(i) K^(i) with mu^(1) = 1, the constant S belongs to the affine term:
+//! K^(1) = (t A^(1) C_P + S) M^-1, K^(i) = t A^(i) C_P M^-1 for i >= 2, M = t C C_P + R.
+//! (Eq. (31) as printed puts S in every K^(i); that gives (sum_i mu^(i)) S, which is not the
+//! gain the vertex condition certifies unless m = 1. Appendix A's form, with the noise
+//! entering outside the scheduling sum as in eq. (26), is the one implemented.)
+//!
+//! **Certificate** ([`certify`]), from our own symmetric eigenvalues (faer), never the
+//! solver's claim: P - I > 0; M(mu) > 0 at every vertex; and on a dense grid of the box the
+//! bounded-real matrix of the closed-loop error system (29),
+//! ```text
+//! [ P   P Acl(mu)   P Bcl(mu) ]
+//! [ *   P - I       0         ]  > 0,   Acl = A(mu) - K(mu) C,
+//! [ *   0           t I       ]         Bcl = [ (S R^-1 - K(mu)) R^{1/2},  Qx^{1/2} ],
+//! ```
+//! which says that V(x) = x^T P x is a common Lyapunov function of the error system over
+//! the whole box with V(x+) - V(x) < -|x|^2 + gamma^2 |eps|^2 (so ||E||_inf < gamma and the
+//! predictor A(mu) - K(mu) C is stable for every frozen or varying mu in the box).
+//!
+//! **Residuals (24)-(25).** As the paper: A^(i), B^(i) are re-estimated by least squares from
+//! the identified state sequence *without* the innovation regressors (eq. (24) left; the
+//! realization of [`crate::pbsid`] estimates them jointly with K^(i), eq. (6)-(7)); C and D
+//! are the realization's least-squares estimates (eq. (24) right). W = x_{k+1} -
+//! sum_i mu^(i) (A^(i) x_k + B^(i) u_k), V = y_k - C x_k - D u_k, and
+//! [Q S; S^T R] = [W; V][W; V]^T / (columns - 1) (the paper's 1/(N - p - 2)). The
+//! H-infinity model is (A, B from (24), C, D, K from (31)); when the design fails the
+//! least-squares model is kept whole.
+
+use clarabel::algebra::CscMatrix;
+use clarabel::solver::{
+    DefaultSettings, DefaultSolver, IPSolver, SolverStatus, SupportedConeT::PSDTriangleConeT,
+};
+use nalgebra::{DMatrix, DVector};
+use serde_json::{json, Value};
+
+use crate::linalg::{spectral_radius, sym_eig};
+use crate::lpvss::{scheduled, LpvSs, Signals};
+
+/// Default strictness margin delta of the LMIs (normalised units, see the module docs).
+pub const DEFAULT_MARGIN: f64 = 1e-6;
+
+/// Default number of grid points per scheduling signal in the certificate (at most
+/// [`MAX_GRID_POINTS`] in total).
+pub const DEFAULT_GRID: usize = 1001;
+
+/// Largest total number of grid points of the certificate.
+pub const MAX_GRID_POINTS: usize = 40_000;
+
+/// Why an observer design was not made, in words.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum ObserverError {
+    /// The model or data do not allow the design.
+    #[error("H-infinity observer: {0}")]
+    Input(String),
+    /// The LMI problem (30) has no solution (solver certificate of infeasibility).
+    #[error(
+        "H-infinity observer: the LMI problem (30) is infeasible over the scheduling box ({0})"
+    )]
+    Infeasible(String),
+    /// The solver stopped without a solution.
+    #[error("H-infinity observer: the SDP solver failed ({0})")]
+    SolverFailed(String),
+    /// The solver returned a point our own eigenvalue check rejects.
+    #[error(
+        "H-infinity observer: the solver's solution fails the independent eigenvalue check ({0})"
+    )]
+    Certificate(String),
+}
+
+/// Process/measurement noise covariances of eq. (4), estimated by eq. (25).
+#[derive(Debug, Clone, PartialEq)]
+pub struct NoiseCov {
+    /// Q (n x n): state-equation residual covariance.
+    pub q: DMatrix<f64>,
+    /// S (n x l): cross covariance.
+    pub s: DMatrix<f64>,
+    /// R (l x l): output residual covariance.
+    pub r: DMatrix<f64>,
+    /// Number of residual columns used.
+    pub columns: usize,
+}
+
+/// The joint covariance [Q S; S^T R].
+fn joint(nc: &NoiseCov) -> DMatrix<f64> {
+    let (n, l) = (nc.q.nrows(), nc.r.nrows());
+    let mut j = DMatrix::zeros(n + l, n + l);
+    j.view_mut((0, 0), (n, n)).copy_from(&nc.q);
+    j.view_mut((0, n), (n, l)).copy_from(&nc.s);
+    j.view_mut((n, 0), (l, n)).copy_from(&nc.s.transpose());
+    j.view_mut((n, n), (l, l)).copy_from(&nc.r);
+    j
+}
+
+/// Eq. (24)-(25): [A^(1..m), B^(1..m)] by least squares from the state sequence without
+/// innovation regressors, C and D of `model` (the realization's least-squares estimates of
+/// the output equation, which (24) right repeats), and the noise covariances from the
+/// residuals. `states` column j is x_{past+j} ([`crate::pbsid::PbsidFit::states`]), in the
+/// model's basis and units. Returns the model with these A, B (and K = 0) and the
+/// covariances.
+pub fn residual_model(
+    model: &LpvSs,
+    sig: &Signals,
+    states: &DMatrix<f64>,
+    past: usize,
+) -> Result<(LpvSs, NoiseCov), ObserverError> {
+    model.check().map_err(ObserverError::Input)?;
+    let (n, r, l, m) = (model.n(), model.r(), model.l(), model.m());
+    if states.nrows() != n {
+        return Err(ObserverError::Input(format!(
+            "the state sequence has {} rows, the model {n} states",
+            states.nrows()
+        )));
+    }
+    if sig.p.ncols() + 1 != m || sig.u.ncols() != r || sig.y.ncols() != l {
+        return Err(ObserverError::Input(
+            "the data's channels do not match the model".into(),
+        ));
+    }
+    let cols = states.ncols().saturating_sub(1);
+    if cols < 3 || past + cols > sig.len() {
+        return Err(ObserverError::Input(format!(
+            "{cols} residual columns from {} samples and past window {past}: too few, or the states do not match the data",
+            sig.len()
+        )));
+    }
+    // (24) left: x_{k+1} = [A, B] [mu_k (x) x_k; mu_k (x) u_k], rows = samples
+    let d = m * (n + r);
+    let mut phi = DMatrix::<f64>::zeros(cols, d);
+    let mut tgt = DMatrix::<f64>::zeros(cols, n);
+    for j in 0..cols {
+        let k = past + j;
+        let mu = sig.mu(k);
+        for i in 0..m {
+            for a in 0..n {
+                phi[(j, i * (n + r) + a)] = mu[i] * states[(a, j)];
+            }
+            for b in 0..r {
+                phi[(j, i * (n + r) + n + b)] = mu[i] * sig.u[(k, b)];
+            }
+        }
+        for a in 0..n {
+            tgt[(j, a)] = states[(a, j + 1)];
+        }
+    }
+    if !phi.iter().chain(tgt.iter()).all(|v| v.is_finite()) {
+        return Err(ObserverError::Input("non-finite states or data".into()));
+    }
+    let svd = phi.svd(true, true);
+    let smax = svd.singular_values.max();
+    let sol = svd
+        .solve(&tgt, 1e-12 * smax)
+        .map_err(|e| ObserverError::Input(format!("least squares (24): {e}")))?;
+    let solt = sol.transpose();
+    let mut out = LpvSs {
+        a: Vec::with_capacity(m),
+        b: Vec::with_capacity(m),
+        k: vec![DMatrix::zeros(n, l); m],
+        c: model.c.clone(),
+        d: model.d.clone(),
+    };
+    for i in 0..m {
+        out.a.push(solt.columns(i * (n + r), n).into_owned());
+        out.b.push(solt.columns(i * (n + r) + n, r).into_owned());
+    }
+    // residuals W (state equation) and V (output equation), eq. (25)
+    let mut wv = DMatrix::<f64>::zeros(n + l, cols);
+    for j in 0..cols {
+        let k = past + j;
+        let mu = sig.mu(k);
+        let x = states.column(j);
+        let u = sig.u.row(k).transpose();
+        let y = sig.y.row(k).transpose();
+        let w = states.column(j + 1) - out.a_at(&mu) * x - scheduled(&out.b, &mu) * &u;
+        let v = y - scheduled(&out.c, &mu) * x - scheduled(&out.d, &mu) * &u;
+        wv.view_mut((0, j), (n, 1)).copy_from(&w);
+        wv.view_mut((n, j), (l, 1)).copy_from(&v);
+    }
+    if !wv.iter().all(|v| v.is_finite()) {
+        return Err(ObserverError::Input(
+            "non-finite residuals (the model or states are not finite)".into(),
+        ));
+    }
+    let cov = &wv * wv.transpose() / (cols as f64 - 1.0);
+    let nc = NoiseCov {
+        q: cov.view((0, 0), (n, n)).into_owned(),
+        s: cov.view((0, n), (n, l)).into_owned(),
+        r: cov.view((n, n), (l, l)).into_owned(),
+        columns: cols,
+    };
+    Ok((out, nc))
+}
+
+/// The whole of section 3.4 for an identified model: (24)-(25) from its state sequence, the
+/// LMI (30) over the vertices of `sbox`, the gains (31), certified. Returns the observer
+/// model (A, B from (24), C, D of `model`, K from (31)), the noise covariances and the
+/// design. On any error the caller keeps its least-squares model.
+pub fn hinf_observer(
+    model: &LpvSs,
+    sig: &Signals,
+    states: &DMatrix<f64>,
+    past: usize,
+    sbox: &SchedBox,
+    opts: &HinfOptions,
+) -> Result<(LpvSs, NoiseCov, HinfDesign), ObserverError> {
+    let (mut out, nc) = residual_model(model, sig, states, past)?;
+    let design = design_hinf(&out, &nc, sbox, opts)?;
+    out.k = design.k.clone();
+    Ok((out, nc, design))
+}
+
+/// The operating region of the scheduling: a box, one interval per scheduling signal.
+#[derive(Debug, Clone, PartialEq)]
+pub struct SchedBox {
+    /// Names of the scheduling signals (the model's scheduling basis functions after the
+    /// constant, e.g. `p1`).
+    pub names: Vec<String>,
+    /// Lower bounds.
+    pub lo: Vec<f64>,
+    /// Upper bounds.
+    pub hi: Vec<f64>,
+    /// Where each interval came from (`data` or `--scheduling-range`).
+    pub source: Vec<String>,
+}
+
+impl SchedBox {
+    /// The data's range of each scheduling signal (columns of `sig.p`).
+    pub fn from_signals(names: &[String], sig: &Signals) -> SchedBox {
+        let s = sig.p.ncols();
+        let (mut lo, mut hi) = (vec![0.0; s], vec![0.0; s]);
+        for j in 0..s {
+            let c = sig.p.column(j);
+            lo[j] = c.min();
+            hi[j] = c.max();
+        }
+        SchedBox {
+            names: names.to_vec(),
+            lo,
+            hi,
+            source: vec!["data".into(); s],
+        }
+    }
+
+    /// Number of scheduling signals s.
+    pub fn dim(&self) -> usize {
+        self.lo.len()
+    }
+
+    /// Apply `name=lo:hi` overrides (several may be given, comma-separated or repeated).
+    pub fn apply_ranges(&mut self, specs: &[String]) -> Result<(), String> {
+        for spec in specs.iter().flat_map(|s| s.split(',')) {
+            let spec = spec.trim();
+            if spec.is_empty() {
+                continue;
+            }
+            let (name, range) = spec.split_once('=').ok_or_else(|| {
+                format!("scheduling range '{spec}': expected NAME=LO:HI, e.g. p1=-0.8:1.2")
+            })?;
+            let j = self.names.iter().position(|n| n == name.trim()).ok_or_else(|| {
+                format!(
+                    "scheduling range '{spec}': the model has no scheduling signal '{}' (it has: {})",
+                    name.trim(),
+                    if self.names.is_empty() { "none".to_string() } else { self.names.join(", ") }
+                )
+            })?;
+            let (a, b) = range
+                .split_once(':')
+                .ok_or_else(|| format!("scheduling range '{spec}': expected LO:HI after '='"))?;
+            let parse = |v: &str| {
+                v.trim()
+                    .parse::<f64>()
+                    .ok()
+                    .filter(|x| x.is_finite())
+                    .ok_or_else(|| {
+                        format!("scheduling range '{spec}': '{v}' is not a finite number")
+                    })
+            };
+            let (a, b) = (parse(a)?, parse(b)?);
+            if a > b {
+                return Err(format!(
+                    "scheduling range '{spec}': lower bound above upper bound"
+                ));
+            }
+            self.lo[j] = a;
+            self.hi[j] = b;
+            self.source[j] = "--scheduling-range".into();
+        }
+        Ok(())
+    }
+
+    /// The 2^s vertices as mu = [1, p1, ..., ps] (duplicates of a degenerate interval
+    /// removed).
+    pub fn vertices(&self) -> Vec<DVector<f64>> {
+        let s = self.dim();
+        let mut out: Vec<DVector<f64>> = Vec::new();
+        for v in 0..(1usize << s) {
+            let mu = DVector::from_fn(s + 1, |i, _| {
+                if i == 0 {
+                    1.0
+                } else if v >> (i - 1) & 1 == 1 {
+                    self.hi[i - 1]
+                } else {
+                    self.lo[i - 1]
+                }
+            });
+            if !out.contains(&mu) {
+                out.push(mu);
+            }
+        }
+        out
+    }
+
+    /// A grid of the box with about `per_dim` points per signal (capped at
+    /// [`MAX_GRID_POINTS`] in total), as mu vectors.
+    pub fn grid(&self, per_dim: usize) -> Vec<DVector<f64>> {
+        let s = self.dim();
+        if s == 0 {
+            return vec![DVector::from_element(1, 1.0)];
+        }
+        let mut g = per_dim.max(2);
+        while g.saturating_pow(s as u32) > MAX_GRID_POINTS && g > 2 {
+            g -= 1;
+        }
+        let total = g.pow(s as u32);
+        (0..total)
+            .map(|mut idx| {
+                let mut mu = DVector::from_element(s + 1, 1.0);
+                for j in 0..s {
+                    let t = (idx % g) as f64 / (g - 1) as f64;
+                    idx /= g;
+                    mu[j + 1] = self.lo[j] + t * (self.hi[j] - self.lo[j]);
+                }
+                mu
+            })
+            .collect()
+    }
+}
+
+/// Settings of the H-infinity design.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct HinfOptions {
+    /// Strictness margin delta (normalised units).
+    pub margin: f64,
+    /// Certificate grid points per scheduling signal.
+    pub grid: usize,
+}
+
+impl Default for HinfOptions {
+    fn default() -> Self {
+        HinfOptions {
+            margin: DEFAULT_MARGIN,
+            grid: DEFAULT_GRID,
+        }
+    }
+}
+
+/// The independent check of a design (eigenvalues from our own code).
+#[derive(Debug, Clone, PartialEq)]
+pub struct Certificate {
+    /// Smallest eigenvalue of P - I.
+    pub min_eig_p_minus_i: f64,
+    /// Smallest eigenvalue of the LMI matrix (30) at each vertex (normalised units).
+    pub min_eig_vertex: Vec<f64>,
+    /// Number of grid points of the box checked.
+    pub grid_points: usize,
+    /// Smallest eigenvalue of the error system's bounded-real matrix over the grid.
+    pub min_eig_grid: f64,
+    /// Largest spectral radius of A(mu) - K(mu) C over the grid.
+    pub max_rho_grid: f64,
+}
+
+impl Certificate {
+    /// Every check passed.
+    pub fn ok(&self) -> bool {
+        self.min_eig_p_minus_i > 0.0
+            && self.min_eig_vertex.iter().all(|&v| v > 0.0)
+            && self.min_eig_grid > 0.0
+            && self.max_rho_grid < 1.0
+    }
+
+    /// As JSON.
+    pub fn to_json(&self) -> Value {
+        json!({
+            "ok": self.ok(),
+            "min_eig_p_minus_i": self.min_eig_p_minus_i,
+            "min_eig_vertex_lmi": self.min_eig_vertex,
+            "grid_points": self.grid_points,
+            "min_eig_grid_bounded_real": self.min_eig_grid,
+            "max_spectral_radius_grid": self.max_rho_grid,
+        })
+    }
+}
+
+/// A solved and certified design.
+#[derive(Debug, Clone, PartialEq)]
+pub struct HinfDesign {
+    /// gamma: bound on the H-infinity norm of the error system (29), model units.
+    pub gamma: f64,
+    /// t = gamma^2 / c in the normalised problem.
+    pub gamma2_normalised: f64,
+    /// The noise normalisation c.
+    pub noise_scale: f64,
+    /// The Lyapunov matrix P (> I).
+    pub p: DMatrix<f64>,
+    /// Observer gains K^(1..m).
+    pub k: Vec<DMatrix<f64>>,
+    /// The vertices used (mu = [1, p1, ..]).
+    pub vertices: Vec<DVector<f64>>,
+    /// The strictness margin actually used.
+    pub margin: f64,
+    /// clarabel's status.
+    pub solver_status: String,
+    /// Interior-point iterations.
+    pub iterations: u32,
+    /// Solver time in seconds (clarabel's own timer).
+    pub solve_time: f64,
+    /// The independent check (passed).
+    pub certificate: Certificate,
+}
+
+impl HinfDesign {
+    /// The record that goes into the model's `fit`.
+    pub fn to_json(&self, sbox: &SchedBox) -> Value {
+        json!({
+            "method": "hinf-lmi",
+            "reference": "sparse paper section 3.4, LMI (30) over the vertices, gains (31); S in the affine term K^(1)",
+            "gamma": self.gamma,
+            "gamma2": self.gamma * self.gamma,
+            "gamma2_normalised": self.gamma2_normalised,
+            "noise_scale": self.noise_scale,
+            "margin": self.margin,
+            "margin_meaning": "LMI (30) - margin*I and P - (1+margin)*I in the PSD cone, with [Q S; S' R] divided by noise_scale",
+            "vertices": self.vertices.iter().map(|v| v.iter().copied().collect::<Vec<_>>()).collect::<Vec<_>>(),
+            "scheduling_box": box_json(sbox),
+            "lyapunov_p": rows(&self.p),
+            "solver": "clarabel",
+            "solver_status": self.solver_status,
+            "iterations": self.iterations,
+            "solve_time_s": self.solve_time,
+            "certificate": self.certificate.to_json(),
+        })
+    }
+}
+
+/// A box as JSON.
+pub fn box_json(sbox: &SchedBox) -> Value {
+    json!({
+        "names": sbox.names,
+        "lo": sbox.lo,
+        "hi": sbox.hi,
+        "source": sbox.source,
+    })
+}
+
+fn rows(m: &DMatrix<f64>) -> Vec<Vec<f64>> {
+    (0..m.nrows())
+        .map(|i| m.row(i).iter().copied().collect())
+        .collect()
+}
+
+/// The problem data in normalised units.
+struct Normalised {
+    c_scale: f64,
+    s: DMatrix<f64>,
+    r: DMatrix<f64>,
+    r_inv: DMatrix<f64>,
+    r_half: DMatrix<f64>,
+    qx_half: DMatrix<f64>,
+}
+
+fn sym_fn(m: &DMatrix<f64>, f: impl Fn(f64) -> f64) -> Result<DMatrix<f64>, ObserverError> {
+    let (vals, vecs) = sym_eig(m).map_err(ObserverError::Input)?;
+    let d = DMatrix::from_diagonal(&DVector::from_iterator(
+        vals.len(),
+        vals.iter().map(|&v| f(v)),
+    ));
+    Ok(&vecs * d * vecs.transpose())
+}
+
+fn min_eig(m: &DMatrix<f64>) -> f64 {
+    match sym_eig(m) {
+        Ok((vals, _)) => vals.last().copied().unwrap_or(f64::INFINITY),
+        Err(_) => f64::NAN,
+    }
+}
+
+fn normalise(nc: &NoiseCov) -> Result<Normalised, ObserverError> {
+    let j = joint(nc);
+    if !j.iter().all(|v| v.is_finite()) {
+        return Err(ObserverError::Input("non-finite noise covariance".into()));
+    }
+    let (vals, _) = sym_eig(&j).map_err(ObserverError::Input)?;
+    let c = vals.first().copied().unwrap_or(0.0);
+    if c <= 0.0 || c.is_nan() {
+        return Err(ObserverError::Input(
+            "the residual covariance is zero (an exact fit): (30) needs R > 0".into(),
+        ));
+    }
+    let r = &nc.r / c;
+    let rmin = min_eig(&r);
+    if rmin.is_nan() || rmin <= 1e-12 {
+        return Err(ObserverError::Input(format!(
+            "the output residual covariance R is singular (smallest eigenvalue {:.3e} of the normalised R): (30) needs R > 0",
+            rmin
+        )));
+    }
+    let r_inv = sym_fn(&r, |v| 1.0 / v)?;
+    let r_half = sym_fn(&r, f64::sqrt)?;
+    let s = &nc.s / c;
+    let q = &nc.q / c;
+    let qx = &q - &s * &r_inv * s.transpose();
+    let qx_half = sym_fn(&qx, |v| v.max(0.0).sqrt())?;
+    Ok(Normalised {
+        c_scale: c,
+        s,
+        r,
+        r_inv,
+        r_half,
+        qx_half,
+    })
+}
+
+/// Index of P_ij (i <= j) among the variables: upper triangle, column-major.
+fn pvar(i: usize, j: usize) -> usize {
+    let (i, j) = if i <= j { (i, j) } else { (j, i) };
+    j * (j + 1) / 2 + i
+}
+
+/// Symmetric basis matrix of variable P_ij.
+fn basis(n: usize, i: usize, j: usize) -> DMatrix<f64> {
+    let mut e = DMatrix::zeros(n, n);
+    e[(i, j)] = 1.0;
+    e[(j, i)] = 1.0;
+    e
+}
+
+/// The affine matrix function F(x) = F0 + sum_k x_k F_k of one LMI.
+struct AffineLmi {
+    f0: DMatrix<f64>,
+    fk: Vec<DMatrix<f64>>,
+}
+
+impl AffineLmi {
+    fn eval(&self, x: &[f64]) -> DMatrix<f64> {
+        let mut m = self.f0.clone();
+        for (f, v) in self.fk.iter().zip(x) {
+            m += f * *v;
+        }
+        m
+    }
+}
+
+/// LMI (30) at the frozen A(mu) (normalised noise), as an affine function of
+/// x = [P_ij (i <= j, column-major); t].
+fn lmi30(amu: &DMatrix<f64>, c: &DMatrix<f64>, nz: &Normalised) -> AffineLmi {
+    let n = amu.nrows();
+    let abar = amu - &nz.s * &nz.r_inv * c;
+    let h = c.transpose() * &nz.r_inv * c;
+    let g = &nz.qx_half;
+    let dim = 4 * n;
+    let mut f0 = DMatrix::zeros(dim, dim);
+    for i in 0..n {
+        f0[(n + i, n + i)] = 1.0;
+        f0[(n + i, 2 * n + i)] = 1.0;
+        f0[(2 * n + i, n + i)] = 1.0;
+    }
+    let nvar = n * (n + 1) / 2 + 1;
+    let mut fk = vec![DMatrix::zeros(dim, dim); nvar];
+    for j in 0..n {
+        for i in 0..=j {
+            let e = basis(n, i, j);
+            let f = &mut fk[pvar(i, j)];
+            f.view_mut((0, 0), (n, n)).copy_from(&e);
+            let ea = &e * &abar;
+            f.view_mut((0, 2 * n), (n, n)).copy_from(&ea);
+            f.view_mut((2 * n, 0), (n, n)).copy_from(&ea.transpose());
+            let eg = &e * g;
+            f.view_mut((0, 3 * n), (n, n)).copy_from(&eg);
+            f.view_mut((3 * n, 0), (n, n)).copy_from(&eg.transpose());
+            f.view_mut((2 * n, 2 * n), (n, n)).copy_from(&e);
+        }
+    }
+    let ft = &mut fk[nvar - 1];
+    ft.view_mut((2 * n, 2 * n), (n, n)).copy_from(&h);
+    for i in 0..n {
+        ft[(3 * n + i, 3 * n + i)] = 1.0;
+    }
+    AffineLmi { f0, fk }
+}
+
+/// P - I as an affine function of x.
+fn lmi_p(n: usize) -> AffineLmi {
+    let nvar = n * (n + 1) / 2 + 1;
+    let mut fk = vec![DMatrix::zeros(n, n); nvar];
+    for j in 0..n {
+        for i in 0..=j {
+            fk[pvar(i, j)] = basis(n, i, j);
+        }
+    }
+    AffineLmi {
+        f0: -DMatrix::identity(n, n),
+        fk,
+    }
+}
+
+/// Outcome of one SDP solve.
+struct SdpSolution {
+    x: Vec<f64>,
+    status: SolverStatus,
+    iterations: u32,
+    solve_time: f64,
+}
+
+/// min c^T x s.t. F_j(x) - margin I in the PSD cone for every LMI j, with clarabel: rows of
+/// the upper triangle in column-major order, off-diagonal entries scaled by sqrt(2), and
+/// `b - A x` in the cone (RECIPES.md).
+fn solve_sdp(lmis: &[AffineLmi], cost: &[f64], margin: f64) -> SdpSolution {
+    let nvar = cost.len();
+    let sqrt2 = std::f64::consts::SQRT_2;
+    let (mut ri, mut ci, mut vv) = (Vec::new(), Vec::new(), Vec::new());
+    let mut b = Vec::new();
+    let mut cones = Vec::new();
+    let mut row = 0usize;
+    for lmi in lmis {
+        let d = lmi.f0.nrows();
+        for j in 0..d {
+            for i in 0..=j {
+                let sc = if i == j { 1.0 } else { sqrt2 };
+                let f0 = lmi.f0[(i, j)] - if i == j { margin } else { 0.0 };
+                b.push(sc * f0);
+                for (k, f) in lmi.fk.iter().enumerate() {
+                    let v = f[(i, j)];
+                    if v != 0.0 {
+                        ri.push(row);
+                        ci.push(k);
+                        vv.push(-sc * v);
+                    }
+                }
+                row += 1;
+            }
+        }
+        cones.push(PSDTriangleConeT(d));
+    }
+    let a = CscMatrix::new_from_triplets(row, nvar, ri, ci, vv);
+    let p = CscMatrix::zeros((nvar, nvar));
+    let settings = DefaultSettings::<f64> {
+        verbose: false,
+        max_iter: 200,
+        ..DefaultSettings::default()
+    };
+    match DefaultSolver::new(&p, cost, &a, &b, &cones, settings) {
+        Ok(mut solver) => {
+            solver.solve();
+            let s = &solver.solution;
+            SdpSolution {
+                x: s.x.clone(),
+                status: s.status,
+                iterations: s.iterations,
+                solve_time: s.solve_time,
+            }
+        }
+        Err(_) => SdpSolution {
+            x: vec![f64::NAN; nvar],
+            status: SolverStatus::NumericalError,
+            iterations: 0,
+            solve_time: 0.0,
+        },
+    }
+}
+
+fn unpack_p(x: &[f64], n: usize) -> DMatrix<f64> {
+    DMatrix::from_fn(n, n, |i, j| x[pvar(i, j)])
+}
+
+/// Gains (31) from (P, t) in normalised units, K^(1) carrying S (see the module docs).
+fn gains(
+    a: &[DMatrix<f64>],
+    c: &DMatrix<f64>,
+    nz: &Normalised,
+    p: &DMatrix<f64>,
+    t: f64,
+) -> Result<Vec<DMatrix<f64>>, ObserverError> {
+    let n = p.nrows();
+    let pm = p - DMatrix::identity(n, n);
+    let pm_inv = pm
+        .try_inverse()
+        .ok_or_else(|| ObserverError::Certificate("P - I is singular".into()))?;
+    let cp = pm_inv * c.transpose();
+    let m = (c * &cp) * t + &nz.r;
+    let m_inv = m
+        .try_inverse()
+        .ok_or_else(|| ObserverError::Certificate("t C C_P + R is singular".into()))?;
+    Ok(a.iter()
+        .enumerate()
+        .map(|(i, ai)| {
+            let mut num = ai * &cp * t;
+            if i == 0 {
+                num += &nz.s;
+            }
+            num * &m_inv
+        })
+        .collect())
+}
+
+/// The bounded-real matrix of the error system (29) at mu with gains `k` (normalised
+/// units); see the module docs.
+fn bounded_real(
+    a: &[DMatrix<f64>],
+    k: &[DMatrix<f64>],
+    c: &DMatrix<f64>,
+    nz: &Normalised,
+    p: &DMatrix<f64>,
+    t: f64,
+    mu: &DVector<f64>,
+) -> (DMatrix<f64>, f64) {
+    let n = p.nrows();
+    let l = c.nrows();
+    let kmu = scheduled(k, mu);
+    let acl = scheduled(a, mu) - &kmu * c;
+    let rho = spectral_radius(&acl);
+    let mut bcl = DMatrix::zeros(n, l + n);
+    bcl.view_mut((0, 0), (n, l))
+        .copy_from(&((&nz.s * &nz.r_inv - &kmu) * &nz.r_half));
+    bcl.view_mut((0, l), (n, n)).copy_from(&nz.qx_half);
+    let dim = 3 * n + l;
+    let mut m = DMatrix::zeros(dim, dim);
+    m.view_mut((0, 0), (n, n)).copy_from(p);
+    let pa = p * &acl;
+    let pb = p * &bcl;
+    m.view_mut((0, n), (n, n)).copy_from(&pa);
+    m.view_mut((n, 0), (n, n)).copy_from(&pa.transpose());
+    m.view_mut((0, 2 * n), (n, l + n)).copy_from(&pb);
+    m.view_mut((2 * n, 0), (l + n, n))
+        .copy_from(&pb.transpose());
+    m.view_mut((n, n), (n, n))
+        .copy_from(&(p - DMatrix::identity(n, n)));
+    for i in 0..l + n {
+        m[(2 * n + i, 2 * n + i)] = t;
+    }
+    (m, rho)
+}
+
+/// Independent check of a solution (P, t, gains) over the box: our own eigenvalues.
+fn certify_normalised(
+    a: &[DMatrix<f64>],
+    c: &DMatrix<f64>,
+    nz: &Normalised,
+    (p, t, k): (&DMatrix<f64>, f64, &[DMatrix<f64>]),
+    sbox: &SchedBox,
+    grid: usize,
+) -> Certificate {
+    let n = p.nrows();
+    let min_eig_p_minus_i = min_eig(&(p - DMatrix::identity(n, n)));
+    let mut x: Vec<f64> = (0..n * (n + 1) / 2).map(|_| 0.0).collect();
+    for j in 0..n {
+        for i in 0..=j {
+            x[pvar(i, j)] = p[(i, j)];
+        }
+    }
+    x.push(t);
+    let min_eig_vertex = sbox
+        .vertices()
+        .iter()
+        .map(|mu| min_eig(&lmi30(&scheduled(a, mu), c, nz).eval(&x)))
+        .collect();
+    let pts = sbox.grid(grid);
+    let mut min_eig_grid = f64::INFINITY;
+    let mut max_rho_grid: f64 = 0.0;
+    for mu in &pts {
+        let (m, rho) = bounded_real(a, k, c, nz, p, t, mu);
+        min_eig_grid = min_eig_grid.min(min_eig(&m));
+        max_rho_grid = max_rho_grid.max(rho);
+    }
+    Certificate {
+        min_eig_p_minus_i,
+        min_eig_vertex,
+        grid_points: pts.len(),
+        min_eig_grid,
+        max_rho_grid,
+    }
+}
+
+/// Independent check of a design made for `model` (A^(i), C) and noise `nc` over `sbox`:
+/// recomputes every eigenvalue with our own code from (P, gamma, K).
+pub fn certify(
+    model: &LpvSs,
+    nc: &NoiseCov,
+    design: &HinfDesign,
+    sbox: &SchedBox,
+    grid: usize,
+) -> Result<Certificate, ObserverError> {
+    let nz = normalise(nc)?;
+    let t = design.gamma * design.gamma / nz.c_scale;
+    Ok(certify_normalised(
+        &model.a,
+        &model.c[0],
+        &nz,
+        (&design.p, t, &design.k),
+        sbox,
+        grid,
+    ))
+}
+
+/// Solve (30) over the vertices of `sbox` for the identified `model` and noise `nc`, compute
+/// the gains (31) and certify them. The model's own K is not used.
+pub fn design_hinf(
+    model: &LpvSs,
+    nc: &NoiseCov,
+    sbox: &SchedBox,
+    opts: &HinfOptions,
+) -> Result<HinfDesign, ObserverError> {
+    model.check().map_err(ObserverError::Input)?;
+    if model.c.len() != 1 || model.d.len() != 1 {
+        return Err(ObserverError::Input(
+            "LMI (30) needs a parameter-independent output equation (one C and one D)".into(),
+        ));
+    }
+    let (n, l, m) = (model.n(), model.l(), model.m());
+    if sbox.dim() + 1 != m {
+        return Err(ObserverError::Input(format!(
+            "the scheduling box has {} signals, the model {}",
+            sbox.dim(),
+            m - 1
+        )));
+    }
+    if nc.q.nrows() != n || nc.r.nrows() != l {
+        return Err(ObserverError::Input(
+            "noise covariances do not match the model".into(),
+        ));
+    }
+    if !(opts.margin > 0.0 && opts.margin.is_finite()) {
+        return Err(ObserverError::Input(format!(
+            "the margin must be positive, got {}",
+            opts.margin
+        )));
+    }
+    let c = &model.c[0];
+    let nz = normalise(nc)?;
+    let vertices = sbox.vertices();
+    let mut lmis = vec![lmi_p(n)];
+    for mu in &vertices {
+        lmis.push(lmi30(&model.a_at(mu), c, &nz));
+    }
+    let nvar = n * (n + 1) / 2 + 1;
+    let mut cost = vec![0.0; nvar];
+    cost[nvar - 1] = 1.0;
+    let mut margin = opts.margin;
+    let mut last_err = None;
+    for _attempt in 0..3 {
+        let sol = solve_sdp(&lmis, &cost, margin);
+        match sol.status {
+            SolverStatus::Solved | SolverStatus::AlmostSolved => {}
+            SolverStatus::PrimalInfeasible | SolverStatus::AlmostPrimalInfeasible => {
+                return Err(ObserverError::Infeasible(format!(
+                    "clarabel: {:?} after {} iterations, margin {margin:e}",
+                    sol.status, sol.iterations
+                )))
+            }
+            other => {
+                return Err(ObserverError::SolverFailed(format!(
+                    "clarabel: {other:?} after {} iterations",
+                    sol.iterations
+                )))
+            }
+        }
+        let p = unpack_p(&sol.x, n);
+        let t = sol.x[nvar - 1];
+        if !(t.is_finite() && t > 0.0 && p.iter().all(|v| v.is_finite())) {
+            return Err(ObserverError::SolverFailed(format!(
+                "clarabel returned {:?} with gamma^2 = {t}",
+                sol.status
+            )));
+        }
+        let k = match gains(&model.a, c, &nz, &p, t) {
+            Ok(k) => k,
+            Err(e) => {
+                last_err = Some(e);
+                margin *= 100.0;
+                continue;
+            }
+        };
+        let cert = certify_normalised(&model.a, c, &nz, (&p, t, &k), sbox, opts.grid);
+        if cert.ok() {
+            return Ok(HinfDesign {
+                gamma: (t * nz.c_scale).sqrt(),
+                gamma2_normalised: t,
+                noise_scale: nz.c_scale,
+                p,
+                k,
+                vertices,
+                margin,
+                solver_status: format!("{:?}", sol.status),
+                iterations: sol.iterations,
+                solve_time: sol.solve_time,
+                certificate: cert,
+            });
+        }
+        last_err = Some(ObserverError::Certificate(format!(
+            "margin {margin:e}: min eig(P - I) {:.3e}, min eig of (30) over the vertices {:.3e}, min eig of the bounded-real matrix over {} grid points {:.3e}, max spectral radius {:.4}",
+            cert.min_eig_p_minus_i,
+            cert.min_eig_vertex.iter().copied().fold(f64::INFINITY, f64::min),
+            cert.grid_points,
+            cert.min_eig_grid,
+            cert.max_rho_grid
+        )));
+        margin *= 100.0;
+    }
+    Err(last_err.unwrap_or_else(|| ObserverError::SolverFailed("no attempt made".into())))
+}
+
+/// The frozen predictor matrix A(mu) - K(mu) C(mu).
+pub fn predictor_matrix(model: &LpvSs, mu: &DVector<f64>) -> DMatrix<f64> {
+    model.a_at(mu) - scheduled(&model.k, mu) * scheduled(&model.c, mu)
+}
+
+/// Largest spectral radius of the frozen predictor over a grid of the box.
+pub fn max_predictor_radius(model: &LpvSs, sbox: &SchedBox, per_dim: usize) -> f64 {
+    sbox.grid(per_dim)
+        .iter()
+        .map(|mu| spectral_radius(&predictor_matrix(model, mu)))
+        .fold(0.0, f64::max)
+}
+
+/// The frozen-scheduling stability region of the predictor along one scheduling signal.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Region {
+    /// The signal's name.
+    pub signal: String,
+    /// The signal's index among the scheduling signals (0-based).
+    pub index: usize,
+    /// Where the other signals are held (their means) and where the search starts (this
+    /// signal's mean).
+    pub reference: Vec<f64>,
+    /// The interval of this signal containing its reference over which the spectral radius
+    /// of A(mu) - K(mu) C is below 1; `None` when the predictor is unstable at the reference.
+    pub interval: Option<(f64, f64)>,
+    /// Whether the interval reached the edge of the search window (lower, upper): the
+    /// region extends at least that far.
+    pub open: (bool, bool),
+    /// The operating interval of this signal (the box).
+    pub operating: (f64, f64),
+    /// The operating interval lies inside the stability interval.
+    pub covers_operating: bool,
+}
+
+impl Region {
+    /// As JSON.
+    pub fn to_json(&self) -> Value {
+        json!({
+            "signal": self.signal,
+            "reference": self.reference,
+            "stable_interval": self.interval.map(|(a, b)| vec![a, b]),
+            "open_ended": [self.open.0, self.open.1],
+            "operating_interval": [self.operating.0, self.operating.1],
+            "covers_operating_interval": self.covers_operating,
+        })
+    }
+
+    /// One line of text, e.g. `p1 in [-2.71, 3.69] (operating [-0.80, 1.20]: stable)`.
+    pub fn describe(&self) -> String {
+        let op = format!("[{:.2}, {:.2}]", self.operating.0, self.operating.1);
+        match self.interval {
+            None => format!(
+                "{}: unstable at the reference {:.3} (operating {op}: NOT stable)",
+                self.signal,
+                self.reference_value()
+            ),
+            Some((a, b)) => format!(
+                "{} in [{}{a:.2}, {b:.2}{}] (operating {op}: {})",
+                self.signal,
+                if self.open.0 { "<=" } else { "" },
+                if self.open.1 { "+" } else { "" },
+                if self.covers_operating {
+                    "stable"
+                } else {
+                    "NOT stable"
+                }
+            ),
+        }
+    }
+
+    fn reference_value(&self) -> f64 {
+        self.reference.get(self.index).copied().unwrap_or(0.0)
+    }
+}
+
+/// For each scheduling signal j (the others at `reference`), the interval around
+/// `reference[j]` where the frozen predictor is stable (spectral radius < 1), searched over
+/// the operating interval widened by `widen` times its width on each side (at least 1),
+/// with a step of 1/200 of the operating width and the edges refined by bisection to 1e-6.
+pub fn stability_regions(
+    model: &LpvSs,
+    sbox: &SchedBox,
+    reference: &[f64],
+    widen: f64,
+) -> Vec<Region> {
+    let s = sbox.dim();
+    (0..s)
+        .map(|j| {
+            let (lo, hi) = (sbox.lo[j], sbox.hi[j]);
+            let w = (hi - lo).abs().max(1e-3);
+            let (wlo, whi) = (
+                lo.min(reference[j]) - widen.max(1.0) * w,
+                hi.max(reference[j]) + widen.max(1.0) * w,
+            );
+            let rho = |v: f64| {
+                let mut mu = DVector::from_element(s + 1, 1.0);
+                for i in 0..s {
+                    mu[i + 1] = if i == j { v } else { reference[i] };
+                }
+                spectral_radius(&predictor_matrix(model, &mu))
+            };
+            let stable = |v: f64| rho(v) < 1.0;
+            let v0 = reference[j];
+            let mut region = Region {
+                signal: sbox
+                    .names
+                    .get(j)
+                    .cloned()
+                    .unwrap_or_else(|| format!("p{}", j + 1)),
+                index: j,
+                reference: reference.to_vec(),
+                interval: None,
+                open: (false, false),
+                operating: (lo, hi),
+                covers_operating: false,
+            };
+            if !stable(v0) {
+                return region;
+            }
+            let step = w / 200.0;
+            let bisect = |mut good: f64, mut bad: f64| -> (f64, bool) {
+                while (good - bad).abs() > 1e-6 * (1.0 + good.abs()) {
+                    let mid = 0.5 * (good + bad);
+                    if stable(mid) {
+                        good = mid;
+                    } else {
+                        bad = mid;
+                    }
+                }
+                (good, false)
+            };
+            let edge = |dir: f64, limit: f64| -> (f64, bool) {
+                let mut inside = v0;
+                loop {
+                    let next = inside + dir * step;
+                    if (dir > 0.0 && next > limit) || (dir < 0.0 && next < limit) {
+                        return if stable(limit) {
+                            (limit, true)
+                        } else {
+                            bisect(inside, limit)
+                        };
+                    }
+                    if !stable(next) {
+                        return bisect(inside, next);
+                    }
+                    inside = next;
+                }
+            };
+            let (a, oa) = edge(-1.0, wlo);
+            let (b, ob) = edge(1.0, whi);
+            region.interval = Some((a, b));
+            region.open = (oa, ob);
+            region.covers_operating = a <= lo && b >= hi;
+            region
+        })
+        .collect()
+}
+
+/// What `lpvid pbsid --observer ...` asks for.
+#[derive(Debug, Clone, Default)]
+pub struct ObserverRequest {
+    /// Design the H-infinity gains (otherwise keep the least-squares K).
+    pub hinf: bool,
+    /// `name=lo:hi` overrides of the scheduling box (default: the training data's range).
+    pub ranges: Vec<String>,
+    /// Design settings.
+    pub opts: HinfOptions,
+}
+
+/// Where the stability-region search looks: the operating interval widened by this many
+/// widths on each side.
+pub const REGION_WIDEN: f64 = 10.0;
+
+/// Grid points per scheduling signal for the largest predictor spectral radius reported.
+pub const REPORT_GRID: usize = 201;
+
+/// The observer step of a pbsid run: the model to write and what to record and print.
+#[derive(Debug, Clone)]
+pub struct ObserverStep {
+    /// The model to write (the least-squares one, or A, B from (24) with the H-infinity K).
+    pub model: LpvSs,
+    /// "ls" or "hinf": the gain actually in `model`.
+    pub used: &'static str,
+    /// The record for the model's `fit.observer`.
+    pub record: Value,
+    /// The training data's scheduling (names, min, max, mean) for `fit.scheduling`.
+    pub scheduling: Value,
+    /// Stability region of the written model's predictor, one per scheduling signal.
+    pub regions: Vec<Region>,
+    /// Stability region of the least-squares predictor when the H-infinity gain replaced it.
+    pub regions_ls: Option<Vec<Region>>,
+    /// Largest spectral radius of the written predictor over a grid of the box.
+    pub max_rho: f64,
+    /// The box the regions and the design used.
+    pub sbox: SchedBox,
+    /// Human summary lines.
+    pub lines: Vec<String>,
+}
+
+impl ObserverStep {
+    /// Put the observer record, the scheduling statistics and the stability report into a
+    /// model's `fit` object.
+    pub fn annotate(&self, fit: &mut Value) {
+        if let Value::Object(o) = fit {
+            o.insert("observer".into(), self.record.clone());
+            o.insert("scheduling".into(), self.scheduling.clone());
+            o.insert("stability_region".into(), self.stability_json());
+        }
+    }
+
+    /// The stability report as JSON.
+    pub fn stability_json(&self) -> Value {
+        json!({
+            "predictor": "A(mu) - K(mu) C, frozen scheduling, others at their training mean",
+            "regions": self.regions.iter().map(Region::to_json).collect::<Vec<_>>(),
+            "regions_least_squares_gain": self.regions_ls.as_ref().map(|r| r.iter().map(Region::to_json).collect::<Vec<_>>()),
+            "max_spectral_radius_over_box": self.max_rho,
+            "box": box_json(&self.sbox),
+        })
+    }
+}
+
+/// Names, range and mean of the scheduling signals of `sig`.
+pub fn scheduling_json(names: &[String], sig: &Signals) -> Value {
+    let s = sig.p.ncols();
+    let mean: Vec<f64> = (0..s).map(|j| sig.p.column(j).mean()).collect();
+    let sbox = SchedBox::from_signals(names, sig);
+    json!({"names": names, "min": sbox.lo, "max": sbox.hi, "mean": mean})
+}
+
+/// The observer step of `lpvid pbsid`: with `req.hinf`, design the H-infinity gains from the
+/// fit's states (keeping the least-squares model, and saying why, if the design fails);
+/// always report the stability region. Errors only for a malformed `--scheduling-range`.
+pub fn observer_step(
+    ls_model: &LpvSs,
+    states: Option<&DMatrix<f64>>,
+    sig: &Signals,
+    past: usize,
+    names: &[String],
+    req: &ObserverRequest,
+) -> Result<ObserverStep, String> {
+    let mut sbox = SchedBox::from_signals(names, sig);
+    sbox.apply_ranges(&req.ranges)?;
+    let reference: Vec<f64> = (0..sig.p.ncols()).map(|j| sig.p.column(j).mean()).collect();
+    let mut lines = Vec::new();
+    let (model, used, record, regions_ls) = if req.hinf {
+        let attempt = match states {
+            Some(x) => hinf_observer(ls_model, sig, x, past, &sbox, &req.opts),
+            None => Err(ObserverError::Input(
+                "no state sequence (a fit from statistics): the residuals (25) need the states"
+                    .into(),
+            )),
+        };
+        match attempt {
+            Ok((m, nc, d)) => {
+                lines.push(format!(
+                    "observer: H-infinity (LMI (30) over {} vertices, clarabel {} in {} iterations, {:.2} ms): gamma = {:.4e}, margin {:e}",
+                    d.vertices.len(),
+                    d.solver_status,
+                    d.iterations,
+                    d.solve_time * 1e3,
+                    d.gamma,
+                    d.margin
+                ));
+                lines.push(format!(
+                    "  certificate (own eigenvalues): min eig(P - I) {:.2e}, min eig (30) at vertices {:.2e}, bounded-real matrix > 0 on {} grid points (min eig {:.2e}), predictor spectral radius <= {:.4} over the box",
+                    d.certificate.min_eig_p_minus_i,
+                    d.certificate.min_eig_vertex.iter().copied().fold(f64::INFINITY, f64::min),
+                    d.certificate.grid_points,
+                    d.certificate.min_eig_grid,
+                    d.certificate.max_rho_grid
+                ));
+                let mut rec = d.to_json(&sbox);
+                if let Value::Object(o) = &mut rec {
+                    o.insert("requested".into(), "hinf".into());
+                    o.insert("used".into(), "hinf".into());
+                    o.insert(
+                        "noise_covariance".into(),
+                        json!({"Q": rows(&nc.q), "S": rows(&nc.s), "R": rows(&nc.r), "columns": nc.columns,
+                               "estimate": "eq. (25): residuals of (24) over the state sequence, divided by columns - 1"}),
+                    );
+                    o.insert(
+                        "model_matrices".into(),
+                        "A, B re-estimated by (24) without innovation regressors; C, D from the realization; K from (31)".into(),
+                    );
+                }
+                let regions_ls = stability_regions(ls_model, &sbox, &reference, REGION_WIDEN);
+                (m, "hinf", rec, Some(regions_ls))
+            }
+            Err(e) => {
+                lines.push(format!(
+                    "WARNING: {e}; keeping the least-squares observer gain (the model claims no gamma)"
+                ));
+                (
+                    ls_model.clone(),
+                    "ls",
+                    json!({"requested": "hinf", "used": "ls", "error": e.to_string(), "scheduling_box": box_json(&sbox)}),
+                    None,
+                )
+            }
+        }
+    } else {
+        lines.push("observer: least-squares K (eq. (6)-(7) with the innovation estimates)".into());
+        (
+            ls_model.clone(),
+            "ls",
+            json!({"requested": "ls", "used": "ls"}),
+            None,
+        )
+    };
+    let regions = stability_regions(&model, &sbox, &reference, REGION_WIDEN);
+    let max_rho = max_predictor_radius(&model, &sbox, REPORT_GRID);
+    if !regions.is_empty() {
+        lines.push(format!(
+            "stability region of the predictor A(mu) - K(mu) C (others at their mean): max spectral radius {max_rho:.4} over the box"
+        ));
+        for r in &regions {
+            lines.push(format!("  {}", r.describe()));
+        }
+        if let Some(rl) = &regions_ls {
+            lines.push("  with the least-squares gain instead:".into());
+            for r in rl {
+                lines.push(format!("    {}", r.describe()));
+            }
+        }
+    } else {
+        lines.push(format!(
+            "predictor A - K C (no scheduling): spectral radius {max_rho:.4}"
+        ));
+    }
+    Ok(ObserverStep {
+        model,
+        used,
+        record,
+        scheduling: scheduling_json(names, sig),
+        regions,
+        regions_ls,
+        max_rho,
+        sbox,
+        lines,
+    })
+}
+
+/// The report of `lpvid stability`.
+#[derive(Debug, Clone)]
+pub struct StabilityReport {
+    /// The box searched around and reported on.
+    pub sbox: SchedBox,
+    /// Where the other signals are held.
+    pub reference: Vec<f64>,
+    /// Where the reference came from.
+    pub reference_source: String,
+    /// One region per scheduling signal.
+    pub regions: Vec<Region>,
+    /// Largest spectral radius of the predictor over a grid of the box.
+    pub max_rho: f64,
+}
+
+impl StabilityReport {
+    /// As JSON.
+    pub fn to_json(&self) -> Value {
+        json!({
+            "predictor": "A(mu) - K(mu) C(mu), frozen scheduling",
+            "reference": self.reference,
+            "reference_source": self.reference_source,
+            "box": box_json(&self.sbox),
+            "regions": self.regions.iter().map(Region::to_json).collect::<Vec<_>>(),
+            "max_spectral_radius_over_box": self.max_rho,
+            "stable_over_box": self.max_rho < 1.0,
+        })
+    }
+}
+
+fn f64_list(v: Option<&Value>) -> Option<Vec<f64>> {
+    v?.as_array()?.iter().map(Value::as_f64).collect()
+}
+
+/// Stability region of a model's predictor: the box from `data` (its range), else the
+/// model's recorded training range (`fit.scheduling`), then `ranges` overrides; the other
+/// signals held at the data's mean, else the recorded training mean.
+pub fn stability_report(
+    model: &LpvSs,
+    names: &[String],
+    fit: &Value,
+    data: Option<&Signals>,
+    ranges: &[String],
+) -> Result<StabilityReport, String> {
+    model.check()?;
+    let s = model.m() - 1;
+    if names.len() != s {
+        return Err(format!(
+            "the model has {s} scheduling signals but {} names",
+            names.len()
+        ));
+    }
+    let rec = fit.get("scheduling");
+    let (mut sbox, reference, reference_source) = match data {
+        Some(sig) => (
+            SchedBox::from_signals(names, sig),
+            (0..s).map(|j| sig.p.column(j).mean()).collect::<Vec<_>>(),
+            "data mean".to_string(),
+        ),
+        None => {
+            let lo = f64_list(rec.and_then(|r| r.get("min")));
+            let hi = f64_list(rec.and_then(|r| r.get("max")));
+            let mean = f64_list(rec.and_then(|r| r.get("mean")));
+            let have = |v: &Option<Vec<f64>>| v.as_ref().is_some_and(|v| v.len() == s);
+            let (lo, hi, src) = if have(&lo) && have(&hi) {
+                (lo.unwrap_or_default(), hi.unwrap_or_default(), "data")
+            } else {
+                (vec![f64::NAN; s], vec![f64::NAN; s], "unknown")
+            };
+            let (reference, rs) = if have(&mean) {
+                (mean.unwrap_or_default(), "training mean (model fit record)")
+            } else {
+                (
+                    (0..s)
+                        .map(|j| {
+                            if lo[j].is_finite() {
+                                0.5 * (lo[j] + hi[j])
+                            } else {
+                                0.0
+                            }
+                        })
+                        .collect(),
+                    "box centre",
+                )
+            };
+            (
+                SchedBox {
+                    names: names.to_vec(),
+                    lo,
+                    hi,
+                    source: vec![src.into(); s],
+                },
+                reference,
+                rs.to_string(),
+            )
+        }
+    };
+    sbox.apply_ranges(ranges)?;
+    if let Some(j) = (0..s).find(|&j| !(sbox.lo[j].is_finite() && sbox.hi[j].is_finite())) {
+        return Err(format!(
+            "no operating range for scheduling signal {}: give --data or --range {}=LO:HI",
+            names[j], names[j]
+        ));
+    }
+    let mut reference = reference;
+    for (j, r) in reference.iter_mut().enumerate() {
+        if !r.is_finite() {
+            *r = 0.5 * (sbox.lo[j] + sbox.hi[j]);
+        }
+    }
+    let regions = stability_regions(model, &sbox, &reference, REGION_WIDEN);
+    let max_rho = max_predictor_radius(model, &sbox, REPORT_GRID);
+    Ok(StabilityReport {
+        sbox,
+        reference,
+        reference_source,
+        regions,
+        max_rho,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn two() -> SchedBox {
+        SchedBox {
+            names: vec!["p1".into(), "p2".into()],
+            lo: vec![0.0, -1.0],
+            hi: vec![1.0, 2.0],
+            source: vec!["data".into(); 2],
+        }
+    }
+
+    #[test]
+    fn box_vertices_grid_and_ranges() {
+        let b = two();
+        let v = b.vertices();
+        assert_eq!(v.len(), 4);
+        for corner in [[0.0, -1.0], [1.0, -1.0], [0.0, 2.0], [1.0, 2.0]] {
+            assert!(v
+                .iter()
+                .any(|m| m[0] == 1.0 && m[1] == corner[0] && m[2] == corner[1]));
+        }
+        let g = b.grid(5);
+        assert_eq!(g.len(), 25);
+        assert!(g
+            .iter()
+            .all(|m| (0.0..=1.0).contains(&m[1]) && (-1.0..=2.0).contains(&m[2])));
+        // a degenerate interval halves the vertices
+        let mut d = two();
+        d.lo[1] = 0.5;
+        d.hi[1] = 0.5;
+        assert_eq!(d.vertices().len(), 2);
+        // overrides
+        let mut b = two();
+        b.apply_ranges(&["p2=-0.8:1.2,p1=3:4".into()]).unwrap();
+        assert_eq!(
+            (b.lo.clone(), b.hi.clone()),
+            (vec![3.0, -0.8], vec![4.0, 1.2])
+        );
+        assert_eq!(b.source, vec!["--scheduling-range", "--scheduling-range"]);
+        for bad in ["p3=0:1", "p1=1:0", "p1=0", "p1", "p1=x:1", "p1=0:inf"] {
+            assert!(two().apply_ranges(&[bad.into()]).is_err(), "{bad}");
+        }
+        // LTI: one vertex, the constant
+        let e = SchedBox {
+            names: vec![],
+            lo: vec![],
+            hi: vec![],
+            source: vec![],
+        };
+        assert_eq!(e.vertices(), vec![DVector::from_element(1, 1.0)]);
+    }
+
+    #[test]
+    fn triangle_variable_order_is_clarabels() {
+        // upper triangle, column-major: (0,0), (0,1), (1,1), (0,2), (1,2), (2,2)
+        let order: Vec<(usize, usize)> =
+            (0..3).flat_map(|j| (0..=j).map(move |i| (i, j))).collect();
+        for (k, (i, j)) in order.into_iter().enumerate() {
+            assert_eq!(pvar(i, j), k);
+            assert_eq!(pvar(j, i), k);
+        }
+    }
+
+    #[test]
+    fn lti_design_is_certified_and_regions_follow_the_predictor() {
+        // x+ = 1.1 x + u + w, y = x + v: unstable plant, stabilising observer gain needed
+        let m = LpvSs {
+            a: vec![DMatrix::from_element(1, 1, 1.1)],
+            b: vec![DMatrix::from_element(1, 1, 1.0)],
+            k: vec![DMatrix::zeros(1, 1)],
+            c: vec![DMatrix::from_element(1, 1, 1.0)],
+            d: vec![DMatrix::zeros(1, 1)],
+        };
+        let nc = NoiseCov {
+            q: DMatrix::from_element(1, 1, 0.5),
+            s: DMatrix::zeros(1, 1),
+            r: DMatrix::from_element(1, 1, 1.0),
+            columns: 0,
+        };
+        let b = SchedBox {
+            names: vec![],
+            lo: vec![],
+            hi: vec![],
+            source: vec![],
+        };
+        let d = design_hinf(&m, &nc, &b, &HinfOptions::default()).unwrap();
+        assert!(d.certificate.ok());
+        let mut mk = m.clone();
+        mk.k = d.k.clone();
+        assert!(max_predictor_radius(&mk, &b, 3) < 1.0);
+        assert!(max_predictor_radius(&m, &b, 3) > 1.0);
+        // scaling the noise leaves P and K unchanged and scales gamma^2 (the normalisation)
+        let nc2 = NoiseCov {
+            q: &nc.q * 1e-6,
+            s: &nc.s * 1e-6,
+            r: &nc.r * 1e-6,
+            columns: 0,
+        };
+        let d2 = design_hinf(&m, &nc2, &b, &HinfOptions::default()).unwrap();
+        assert!((d2.k[0][(0, 0)] - d.k[0][(0, 0)]).abs() < 1e-9);
+        assert!((d2.gamma / d.gamma - 1e-3).abs() < 1e-9);
+        // a scheduled A: the region shrinks where the predictor's pole leaves the circle
+        let ms = LpvSs {
+            a: vec![
+                DMatrix::from_element(1, 1, 0.2),
+                DMatrix::from_element(1, 1, 0.5),
+            ],
+            b: vec![DMatrix::zeros(1, 1); 2],
+            k: vec![DMatrix::zeros(1, 1); 2],
+            c: vec![DMatrix::from_element(1, 1, 1.0)],
+            d: vec![DMatrix::zeros(1, 1)],
+        };
+        let sb = SchedBox {
+            names: vec!["p1".into()],
+            lo: vec![-1.0],
+            hi: vec![1.0],
+            source: vec!["data".into()],
+        };
+        // |0.2 + 0.5 p| < 1  <=>  p in (-2.4, 1.6)
+        let r = &stability_regions(&ms, &sb, &[0.0], 10.0)[0];
+        let (lo, hi) = r.interval.unwrap();
+        assert!(
+            (lo + 2.4).abs() < 1e-5 && (hi - 1.6).abs() < 1e-5,
+            "{lo} {hi}"
+        );
+        assert!(r.covers_operating && r.open == (false, false));
+    }
+}
