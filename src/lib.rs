@@ -11,6 +11,8 @@
 //! - [`arx`]: LPV-ARX regressors phi(k) = chi(k) (x) pbasis(k) (BC-IV paper, eq. (6)).
 //! - [`bciv`]: bias-corrected IV statistics, one matrix per power of sigma^2 (BC-IV paper, section 5).
 //! - [`lasso`]: coordinate-descent Lasso on statistics, l1 (BC-IV cost (10)) and l2,1 (sparse paper (33)).
+//! - [`protocol`]: the device-host wire frames (COBS, CRC-32, postcard messages), shared by both.
+//! - [`device`]: the transport-agnostic device engine (bytes in, bytes out, owns the statistics).
 //!
 //! Storage is always caller-provided (`AsRef<[T]> + AsMut<[T]>`): arrays sized by `const`
 //! functions on the device, `Vec`s on the host; one implementation, two ways to own it.
@@ -19,10 +21,12 @@
 
 pub mod arx;
 pub mod bciv;
+pub mod device;
 pub mod dictionary;
 pub mod error;
 pub mod kernel;
 pub mod lasso;
+pub mod protocol;
 pub mod real;
 pub mod stats;
 pub mod window;

@@ -1,0 +1,861 @@
+//! The wire protocol between a device and the host (DESIGN.md section 3.6): one definition,
+//! compiled into the firmware and into the host tool, so the two cannot drift.
+//!
+//! **Frame.** `COBS(raw) 0x00`, with
+//! `raw = [version: u8] ++ postcard(Packet { seq, msg }) ++ crc32(version ++ body) as u32 LE`.
+//! - COBS byte stuffing (Cheshire and Baker) removes every 0x00 from the frame, so 0x00 is an
+//!   unambiguous delimiter: a receiver that has lost its place (garbage, a dropped or
+//!   corrupted byte, a frame cut short) is back in step at the next 0x00. Empty frames
+//!   (0x00 0x00) are ignored, so a sender may lead each frame with a 0x00 to cut off
+//!   whatever partial frame the line held before. Overhead: one byte per 254, plus two.
+//! - CRC-32 (IEEE 802.3, reflected polynomial 0xEDB88320, init and final xor 0xFFFFFFFF).
+//!   Why 32 bits and not 16: statistics frames carry up to a few hundred bytes and a fault
+//!   test corrupts one byte in a thousand, so thousands of corrupted frames reach the decoder
+//!   in a long stream. CRC-16 lets one random corruption in 65 536 through, CRC-32 one in
+//!   4.3e9; at these frame lengths CRC-32 also detects every error of up to 3 flipped bits and
+//!   every burst up to 32 bits. The cost is 2 bytes per frame and a 1 KiB table in flash.
+//! - The version byte sits outside the postcard body so a peer of another version is
+//!   rejected as such ([`ErrorCode::WrongVersion`]) before any field is interpreted.
+//! - postcard encodes enum variants by index: variants of [`Message`] and [`ErrorCode`] are
+//!   only ever appended, never reordered or removed (a new variant reaching an old peer is
+//!   rejected as [`ErrorCode::UnknownMessage`]).
+//!
+//! **Sequence numbers and acknowledgements.** Every request the host sends carries a `seq`
+//! (never 0); the device answers each with exactly one reply carrying the same `seq` (its
+//! acknowledgement). A retransmission reuses the `seq`: the device answers a repeated
+//! state-changing request from a cache instead of applying it again. Independently, samples
+//! carry their stream index (`first`): the device applies only samples it has not applied,
+//! acknowledges duplicates without re-applying them, and reports a gap
+//! ([`ErrorCode::Gap`]) instead of hiding it. `seq` 0 marks an unsolicited reply: the
+//! rejection (NAK) of a frame the device could not decode, so the host need not wait for a
+//! timeout to retransmit.
+//!
+//! **Values.** Samples, statistics, solutions and models travel as little-endian floats of
+//! the device's type ([`Info::float_bytes`]: 4 for f32, 8 for f64), in byte slices borrowed
+//! from the frame buffer: decoding never copies and never allocates.
+
+use serde::{Deserialize, Serialize};
+
+use crate::real::Real;
+
+/// Protocol version carried in the first byte of every frame.
+pub const VERSION: u8 = 1;
+
+/// Bytes a frame costs beyond its postcard body: version byte and CRC.
+pub const FRAME_OVERHEAD: usize = 1 + 4;
+
+/// Upper bound on the postcard bytes a message costs besides its value slice (version,
+/// seq, variant, fields, length prefix, CRC): what to subtract from [`max_raw`] to size a
+/// value payload.
+pub const MESSAGE_HEADROOM: usize = 40;
+
+/// Largest COBS encoding of `raw` bytes, without the delimiter.
+pub const fn cobs_max_len(raw: usize) -> usize {
+    raw + raw / 254 + 1
+}
+
+/// Largest raw frame (version + body + CRC) whose encoding plus delimiter fits a buffer of
+/// `buf` bytes.
+pub const fn max_raw(buf: usize) -> usize {
+    // raw + raw/254 + 2 <= buf
+    let mut raw = buf.saturating_sub(2);
+    while raw > 0 && cobs_max_len(raw) + 1 > buf {
+        raw -= 1;
+    }
+    raw
+}
+
+// ---------------------------------------------------------------------------------------
+// CRC-32
+
+const fn crc_table() -> [u32; 256] {
+    let mut t = [0u32; 256];
+    let mut i = 0;
+    while i < 256 {
+        let mut c = i as u32;
+        let mut k = 0;
+        while k < 8 {
+            c = if c & 1 != 0 {
+                0xEDB8_8320 ^ (c >> 1)
+            } else {
+                c >> 1
+            };
+            k += 1;
+        }
+        t[i] = c;
+        i += 1;
+    }
+    t
+}
+
+static CRC_TABLE: [u32; 256] = crc_table();
+
+/// CRC-32 (IEEE 802.3) of `data`; `crc32(b"123456789") == 0xCBF43926`.
+pub fn crc32(data: &[u8]) -> u32 {
+    let mut c = 0xFFFF_FFFFu32;
+    for &b in data {
+        c = CRC_TABLE[((c ^ b as u32) & 0xFF) as usize] ^ (c >> 8);
+    }
+    c ^ 0xFFFF_FFFF
+}
+
+// ---------------------------------------------------------------------------------------
+// COBS
+
+/// COBS-encode `src` into `dst` (no delimiter appended). Returns the encoded length, or
+/// `None` if `dst` is shorter than [`cobs_max_len`]`(src.len())` would need.
+pub fn cobs_encode(src: &[u8], dst: &mut [u8]) -> Option<usize> {
+    let mut code_at = 0usize;
+    let mut out = 1usize;
+    let mut code = 1u8;
+    if dst.is_empty() {
+        return None;
+    }
+    for &b in src {
+        if b == 0 {
+            *dst.get_mut(code_at)? = code;
+            code_at = out;
+            out += 1;
+            code = 1;
+        } else {
+            *dst.get_mut(out)? = b;
+            out += 1;
+            code += 1;
+            if code == 0xFF {
+                *dst.get_mut(code_at)? = code;
+                code_at = out;
+                out += 1;
+                code = 1;
+            }
+        }
+    }
+    *dst.get_mut(code_at)? = code;
+    if out > dst.len() {
+        return None;
+    }
+    Some(out)
+}
+
+/// COBS-decode `buf` (one frame, no delimiter) in place. Returns the decoded length, or
+/// [`ErrorCode::BadCobs`] when a 0x00 appears inside the frame or a code byte points past
+/// its end (what a frame cut short looks like).
+pub fn cobs_decode_in_place(buf: &mut [u8]) -> Result<usize, ErrorCode> {
+    let n = buf.len();
+    let mut read = 0usize;
+    let mut write = 0usize;
+    while read < n {
+        let code = buf[read] as usize;
+        if code == 0 {
+            return Err(ErrorCode::BadCobs);
+        }
+        read += 1;
+        let end = read + code - 1;
+        if end > n {
+            return Err(ErrorCode::BadCobs);
+        }
+        while read < end {
+            let b = buf[read];
+            if b == 0 {
+                return Err(ErrorCode::BadCobs);
+            }
+            buf[write] = b;
+            write += 1;
+            read += 1;
+        }
+        if code != 0xFF && read < n {
+            buf[write] = 0;
+            write += 1;
+        }
+    }
+    Ok(write)
+}
+
+// ---------------------------------------------------------------------------------------
+// Messages
+
+/// Why a frame or a request was rejected (the `code` of [`ErrorReply`]). The first seven
+/// are the frame decoder's reasons; variants are only ever appended.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
+pub enum ErrorCode {
+    /// The frame did not fit the receiver's buffer before its delimiter.
+    Oversize,
+    /// Invalid COBS stuffing (a zero inside, or a code past the end).
+    BadCobs,
+    /// Shorter than version + body + CRC, or the body ended inside a field.
+    Truncated,
+    /// The CRC-32 does not match.
+    BadCrc,
+    /// The version byte is not [`VERSION`]; `detail` carries the receiver's version.
+    WrongVersion,
+    /// A message variant this side does not know (a newer peer).
+    UnknownMessage,
+    /// A field with an invalid encoding, or bytes after the message.
+    Malformed,
+    /// Samples, solve, pull or model before a configuration.
+    NotConfigured,
+    /// Dimensions or settings the core rejects (`detail`: which, see the device docs).
+    BadConfig,
+    /// The device's static storage is too small; `detail`: values needed.
+    Capacity,
+    /// Samples start after the next expected index; `detail`: the expected index.
+    Gap,
+    /// The core rejected a sample (NaN/inf or overflow); `detail`: its stream index.
+    SampleRejected,
+    /// A value slice whose length is not a whole number of values/samples.
+    BadLength,
+    /// A feature this device does not have (e.g. a forgetting factor other than 1).
+    Unsupported,
+    /// The on-device solve failed (singular, no convergence, no data).
+    SolveFailed,
+    /// A pushed model with wrong dimensions, order or non-finite values.
+    ModelInvalid,
+    /// A reply-type message sent to the device.
+    UnexpectedMessage,
+    /// A pull or model chunk outside the valid range; `detail`: the valid length.
+    OutOfRange,
+}
+
+impl ErrorCode {
+    /// True for the frame decoder's reasons (a NAK rather than a request's failure).
+    pub fn is_frame_error(self) -> bool {
+        matches!(
+            self,
+            ErrorCode::Oversize
+                | ErrorCode::BadCobs
+                | ErrorCode::Truncated
+                | ErrorCode::BadCrc
+                | ErrorCode::WrongVersion
+                | ErrorCode::UnknownMessage
+                | ErrorCode::Malformed
+        )
+    }
+
+    /// A short description.
+    pub fn describe(self) -> &'static str {
+        match self {
+            ErrorCode::Oversize => "frame larger than the receive buffer",
+            ErrorCode::BadCobs => "invalid COBS stuffing",
+            ErrorCode::Truncated => "frame truncated",
+            ErrorCode::BadCrc => "CRC mismatch",
+            ErrorCode::WrongVersion => "protocol version mismatch",
+            ErrorCode::UnknownMessage => "unknown message type",
+            ErrorCode::Malformed => "malformed message",
+            ErrorCode::NotConfigured => "device not configured",
+            ErrorCode::BadConfig => "configuration rejected",
+            ErrorCode::Capacity => "device storage too small for this configuration",
+            ErrorCode::Gap => "sample gap",
+            ErrorCode::SampleRejected => "sample rejected (NaN/inf or overflow)",
+            ErrorCode::BadLength => "value slice of invalid length",
+            ErrorCode::Unsupported => "unsupported feature",
+            ErrorCode::SolveFailed => "solve failed",
+            ErrorCode::ModelInvalid => "model rejected",
+            ErrorCode::UnexpectedMessage => "unexpected message",
+            ErrorCode::OutOfRange => "range outside the valid values",
+        }
+    }
+}
+
+impl core::fmt::Display for ErrorCode {
+    fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
+        f.write_str(self.describe())
+    }
+}
+
+/// Statistics layout on the wire (mirrors [`crate::StatsLayout`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+pub enum Layout {
+    /// [`crate::StatsLayout::Plain`].
+    Plain,
+    /// [`crate::StatsLayout::Extended`].
+    Extended,
+}
+
+impl From<Layout> for crate::StatsLayout {
+    fn from(l: Layout) -> Self {
+        match l {
+            Layout::Plain => crate::StatsLayout::Plain,
+            Layout::Extended => crate::StatsLayout::Extended,
+        }
+    }
+}
+
+/// Capability bits of [`Info::capabilities`].
+pub mod caps {
+    /// Accumulates [`super::Layout::Extended`] statistics.
+    pub const EXTENDED: u32 = 1;
+    /// Solves the Lasso / least squares of problem (13) on the device.
+    pub const SOLVE: u32 = 2;
+    /// Runs a pushed model's one-step-ahead predictor on the streamed samples.
+    pub const PREDICT: u32 = 4;
+}
+
+/// What a device is (reply to [`Message::Hello`]). Capacities are in values of the
+/// device's float type.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Info {
+    /// The device's protocol version.
+    pub version: u8,
+    /// Bytes per float: 4 (f32) or 8 (f64).
+    pub float_bytes: u8,
+    /// Largest raw frame (version + body + CRC) the device accepts and sends.
+    pub max_frame: u16,
+    /// Window storage, values ([`crate::window_storage_len`]).
+    pub window_cap: u32,
+    /// Gram storage, values ([`crate::packed_len`] of the statistic vector).
+    pub gram_cap: u32,
+    /// Statistic vector storage, values ([`crate::stat_vector_len`]).
+    pub vector_cap: u32,
+    /// Solver storage, values ((3 l + 2)(q + r) needed for a solve).
+    pub solver_cap: u32,
+    /// Model storage, values (parameters + 2 n + 2 l needed for a pushed model).
+    pub model_cap: u32,
+    /// Largest r + l + s.
+    pub max_channels: u16,
+    /// [`caps`] bits.
+    pub capabilities: u32,
+}
+
+/// Dimensions and settings of the accumulation (request; resets the statistics).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct Config {
+    /// Inputs r.
+    pub r: u8,
+    /// Outputs l.
+    pub l: u8,
+    /// Scheduling signals s.
+    pub s: u8,
+    /// Past window p.
+    pub p: u8,
+    /// Statistics layout.
+    pub layout: Layout,
+    /// Exponential forgetting factor; this version supports only 1.0 (no forgetting: the
+    /// statistics stay mergeable and equal to a file fit), others get
+    /// [`ErrorCode::Unsupported`].
+    pub forgetting: f32,
+}
+
+/// The device's state (reply to [`Message::GetStatus`] and to [`Message::Samples`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Status {
+    /// Whether a configuration is active.
+    pub configured: bool,
+    /// Configured dimensions (0 when not configured).
+    pub r: u8,
+    /// Outputs.
+    pub l: u8,
+    /// Scheduling signals.
+    pub s: u8,
+    /// Past window.
+    pub p: u8,
+    /// Stream index of the next sample the device expects (= samples applied since the
+    /// configuration or reset).
+    pub next_sample: u32,
+    /// Statistic vectors accumulated (windows).
+    pub windows: u64,
+    /// Values in the packed Gram (what [`Message::PullStats`] ranges over).
+    pub gram_len: u32,
+    /// Samples received again and acknowledged without being re-applied.
+    pub duplicate_samples: u32,
+    /// Frames decoded.
+    pub frames_ok: u32,
+    /// Frames rejected by the decoder.
+    pub frames_rejected: u32,
+    /// Whether a pushed model's predictor runs.
+    pub model_loaded: bool,
+}
+
+/// An on-device solve of problem (13): regress y_{k+p} on [z_k^p; u_{k+p}] from the
+/// statistics' leading block, with the l1 or l2,1 penalty of the core's Lasso.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct SolveRequest {
+    /// lambda as a fraction of lambda_max (0: least squares by coordinate descent).
+    pub lambda_ratio: f32,
+    /// false: l1 (per entry); true: l2,1 (per column, shared by the outputs).
+    pub group: bool,
+    /// Penalise standardised coefficients (weights sqrt(G_jj / N)).
+    pub standardise: bool,
+}
+
+/// Result of a [`Message::Solve`]; the coefficients are pulled with
+/// [`Message::PullSolution`] (l x (q + r), row-major).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct SolveSummary {
+    /// Regressor columns q + r.
+    pub columns: u32,
+    /// Outputs l.
+    pub outputs: u8,
+    /// lambda used.
+    pub lambda: f32,
+    /// lambda_max of the statistics.
+    pub lambda_max: f32,
+    /// Sweeps used.
+    pub iterations: u32,
+    /// Whether the stopping rule was met.
+    pub converged: bool,
+    /// Non-zero columns.
+    pub active: u32,
+    /// Relative KKT violation (certificate).
+    pub kkt: f32,
+    /// Objective value.
+    pub objective: f32,
+}
+
+/// A chunk of a model pushed to the device for its one-step-ahead predictor. The values,
+/// in the device's float type, are A^(1..m) (n x n each), B^(1..m) (n x r), K^(1..m)
+/// (n x l), then C (l x n) and D (l x r), one matrix each or m each if
+/// `scheduled_output`; all row-major. Chunks arrive in order (`offset` = values received).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+pub struct ModelChunk<'a> {
+    /// State dimension n.
+    pub n: u16,
+    /// C and D depend on the scheduling (m matrices each).
+    pub scheduled_output: bool,
+    /// Index of the first value of this chunk.
+    pub offset: u32,
+    /// Total number of values of the model.
+    pub total: u32,
+    /// The values, little-endian floats.
+    pub values: &'a [u8],
+}
+
+/// Rejection of a frame or a request.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+pub struct ErrorReply {
+    /// Why.
+    pub code: ErrorCode,
+    /// A number qualifying it (see [`ErrorCode`]).
+    pub detail: u32,
+}
+
+/// The one-step-ahead predictor's record (reply to [`Message::GetPrediction`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Prediction<'a> {
+    /// Samples predicted since the model was loaded or the device reset.
+    pub count: u32,
+    /// Sum of squared prediction errors per output (l floats).
+    pub sse: &'a [u8],
+    /// The last prediction yhat_k per output (l floats).
+    pub last: &'a [u8],
+}
+
+/// Every message of the protocol. Requests go host -> device, the others are replies.
+/// Variants are only ever appended (postcard encodes the index).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub enum Message<'a> {
+    /// Request: handshake; reply [`Message::Info`].
+    Hello {
+        /// The host's protocol version.
+        version: u8,
+    },
+    /// Reply: what the device is.
+    Info(Info),
+    /// Request: set dimensions and layout, clear statistics; reply [`Message::Ack`].
+    Configure(Config),
+    /// Request: samples `first..first + n`, each [u (r), y (l), p (s)]; reply
+    /// [`Message::Status`].
+    Samples {
+        /// Stream index of the first sample.
+        first: u32,
+        /// n (r + l + s) little-endian floats.
+        values: &'a [u8],
+    },
+    /// Request: reply [`Message::Status`].
+    GetStatus,
+    /// Reply: the device's state.
+    Status(Status),
+    /// Request: `count` values of the packed Gram from `offset`; reply [`Message::Values`]
+    /// (possibly fewer values: as many as fit a frame).
+    PullStats {
+        /// First value.
+        offset: u32,
+        /// Values wanted.
+        count: u16,
+    },
+    /// Reply: a chunk of values.
+    Values {
+        /// Index of the first value.
+        offset: u32,
+        /// Length of the whole vector.
+        total: u32,
+        /// Little-endian floats.
+        values: &'a [u8],
+    },
+    /// Request: solve on the device; reply [`Message::Solved`].
+    Solve(SolveRequest),
+    /// Reply: summary of a solve.
+    Solved(SolveSummary),
+    /// Request: `count` coefficients of the last solve from `offset`; reply
+    /// [`Message::Values`].
+    PullSolution {
+        /// First value.
+        offset: u32,
+        /// Values wanted.
+        count: u16,
+    },
+    /// Request: a model chunk; reply [`Message::Ack`].
+    PushModel(ModelChunk<'a>),
+    /// Request: clear statistics, sample index and predictor state (the configuration and
+    /// a loaded model stay); reply [`Message::Ack`].
+    Reset,
+    /// Reply: request applied.
+    Ack,
+    /// Reply: the request or frame was rejected.
+    Error(ErrorReply),
+    /// Request: reply [`Message::Prediction`].
+    GetPrediction,
+    /// Reply: the predictor's record.
+    Prediction(Prediction<'a>),
+}
+
+impl Message<'_> {
+    /// True for messages the host sends.
+    pub fn is_request(&self) -> bool {
+        matches!(
+            self,
+            Message::Hello { .. }
+                | Message::Configure(_)
+                | Message::Samples { .. }
+                | Message::GetStatus
+                | Message::PullStats { .. }
+                | Message::Solve(_)
+                | Message::PullSolution { .. }
+                | Message::PushModel(_)
+                | Message::Reset
+                | Message::GetPrediction
+        )
+    }
+}
+
+/// A decoded frame: sequence number and message.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct Packet<'a> {
+    /// Request number (0: unsolicited, see the module docs).
+    pub seq: u32,
+    /// The message.
+    #[serde(borrow)]
+    pub msg: Message<'a>,
+}
+
+/// Why a frame could not be encoded.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum EncodeError {
+    /// The scratch or output buffer is too small for this message.
+    BufferTooSmall,
+}
+
+/// Encode `seq` + `msg` as a complete frame (COBS + delimiter) into `out`, using `raw` as
+/// scratch for the unstuffed bytes. Returns the frame length.
+pub fn encode_frame(
+    seq: u32,
+    msg: &Message<'_>,
+    raw: &mut [u8],
+    out: &mut [u8],
+) -> Result<usize, EncodeError> {
+    if raw.len() < FRAME_OVERHEAD + 2 {
+        return Err(EncodeError::BufferTooSmall);
+    }
+    raw[0] = VERSION;
+    let avail = raw.len() - 4;
+    let body = postcard::to_slice(&Packet { seq, msg: *msg }, &mut raw[1..avail])
+        .map_err(|_| EncodeError::BufferTooSmall)?
+        .len();
+    let n = 1 + body;
+    let crc = crc32(&raw[..n]);
+    raw[n..n + 4].copy_from_slice(&crc.to_le_bytes());
+    let enc = cobs_encode(&raw[..n + 4], out).ok_or(EncodeError::BufferTooSmall)?;
+    if enc >= out.len() {
+        return Err(EncodeError::BufferTooSmall);
+    }
+    out[enc] = 0;
+    Ok(enc + 1)
+}
+
+/// Decode one frame (its COBS bytes, without the delimiter) in place. Every invalid frame
+/// is rejected with its reason: [`ErrorCode::BadCobs`], [`ErrorCode::Truncated`],
+/// [`ErrorCode::BadCrc`], [`ErrorCode::WrongVersion`], [`ErrorCode::UnknownMessage`] or
+/// [`ErrorCode::Malformed`] ([`ErrorCode::Oversize`] comes from the [`Deframer`]).
+pub fn decode_frame(buf: &mut [u8]) -> Result<Packet<'_>, ErrorCode> {
+    let n = cobs_decode_in_place(buf)?;
+    let raw = &buf[..n];
+    if n < FRAME_OVERHEAD + 2 {
+        return Err(ErrorCode::Truncated);
+    }
+    let (data, crc) = raw.split_at(n - 4);
+    let want = u32::from_le_bytes([crc[0], crc[1], crc[2], crc[3]]);
+    if crc32(data) != want {
+        return Err(ErrorCode::BadCrc);
+    }
+    if data[0] != VERSION {
+        return Err(ErrorCode::WrongVersion);
+    }
+    let body = &data[1..];
+    // the variant index follows the seq varint: an index past the last known variant is a
+    // message of a newer peer, not a corruption (the CRC passed)
+    let mut at = 0;
+    read_varint(body, &mut at)?;
+    if read_varint(body, &mut at)? >= MESSAGE_VARIANTS {
+        return Err(ErrorCode::UnknownMessage);
+    }
+    match postcard::take_from_bytes::<Packet<'_>>(body) {
+        Ok((pkt, [])) => Ok(pkt),
+        Ok(_) => Err(ErrorCode::Malformed),
+        Err(postcard::Error::DeserializeUnexpectedEnd) => Err(ErrorCode::Truncated),
+        Err(_) => Err(ErrorCode::Malformed),
+    }
+}
+
+/// Number of [`Message`] variants this version knows.
+pub const MESSAGE_VARIANTS: u32 = 17;
+
+/// A postcard varint (LEB128, at most 5 bytes for a u32) at `*at`.
+fn read_varint(b: &[u8], at: &mut usize) -> Result<u32, ErrorCode> {
+    let mut v: u32 = 0;
+    for i in 0..5 {
+        let byte = *b.get(*at).ok_or(ErrorCode::Truncated)?;
+        *at += 1;
+        v |= ((byte & 0x7F) as u32) << (7 * i);
+        if byte & 0x80 == 0 {
+            return Ok(v);
+        }
+    }
+    Err(ErrorCode::Malformed)
+}
+
+/// What [`Deframer::push`] found.
+#[derive(Debug, PartialEq, Eq)]
+pub enum Event<'a> {
+    /// Nothing complete yet.
+    Pending,
+    /// A complete frame (COBS bytes, delimiter removed), valid until the next push.
+    Frame(&'a mut [u8]),
+    /// A frame overflowed the buffer; its bytes up to the delimiter were dropped.
+    Oversize,
+}
+
+/// Splits a byte stream at 0x00 delimiters into a fixed buffer of `N` bytes: no
+/// allocation, and an over-long frame costs only itself (it is reported once at its
+/// delimiter and the next frame starts clean).
+#[derive(Debug, Clone)]
+pub struct Deframer<const N: usize> {
+    buf: [u8; N],
+    len: usize,
+    overflow: bool,
+}
+
+impl<const N: usize> Default for Deframer<N> {
+    fn default() -> Self {
+        Self::new()
+    }
+}
+
+impl<const N: usize> Deframer<N> {
+    /// An empty deframer.
+    pub const fn new() -> Self {
+        Deframer {
+            buf: [0; N],
+            len: 0,
+            overflow: false,
+        }
+    }
+
+    /// Bytes of the current, incomplete frame.
+    pub fn pending(&self) -> usize {
+        self.len
+    }
+
+    /// Drop the incomplete frame.
+    pub fn clear(&mut self) {
+        self.len = 0;
+        self.overflow = false;
+    }
+
+    /// Feed one byte.
+    pub fn push(&mut self, b: u8) -> Event<'_> {
+        if b == 0 {
+            let len = self.len;
+            let over = self.overflow;
+            self.len = 0;
+            self.overflow = false;
+            if over {
+                return Event::Oversize;
+            }
+            if len == 0 {
+                return Event::Pending;
+            }
+            return Event::Frame(&mut self.buf[..len]);
+        }
+        if self.overflow {
+            return Event::Pending;
+        }
+        if self.len < N {
+            self.buf[self.len] = b;
+            self.len += 1;
+        } else {
+            self.overflow = true;
+        }
+        Event::Pending
+    }
+}
+
+// ---------------------------------------------------------------------------------------
+// Values
+
+/// A float the wire carries: [`Real`] plus little-endian byte conversion.
+pub trait WireReal: Real {
+    /// Write `self` into `out[..Self::BYTES]`.
+    fn write_le(self, out: &mut [u8]);
+    /// Read from `b[..Self::BYTES]`.
+    fn read_le(b: &[u8]) -> Self;
+}
+
+impl WireReal for f32 {
+    #[inline]
+    fn write_le(self, out: &mut [u8]) {
+        out[..4].copy_from_slice(&self.to_le_bytes());
+    }
+    #[inline]
+    fn read_le(b: &[u8]) -> Self {
+        f32::from_le_bytes([b[0], b[1], b[2], b[3]])
+    }
+}
+
+impl WireReal for f64 {
+    #[inline]
+    fn write_le(self, out: &mut [u8]) {
+        out[..8].copy_from_slice(&self.to_le_bytes());
+    }
+    #[inline]
+    fn read_le(b: &[u8]) -> Self {
+        let mut a = [0u8; 8];
+        a.copy_from_slice(&b[..8]);
+        f64::from_le_bytes(a)
+    }
+}
+
+/// Write `vals` as little-endian floats into `out`; returns the bytes written, or `None`
+/// if `out` is too short.
+pub fn write_values<T: WireReal>(vals: &[T], out: &mut [u8]) -> Option<usize> {
+    let n = vals.len().checked_mul(T::BYTES)?;
+    if out.len() < n {
+        return None;
+    }
+    for (v, o) in vals.iter().zip(out.chunks_exact_mut(T::BYTES)) {
+        v.write_le(o);
+    }
+    Some(n)
+}
+
+/// Value `i` of a little-endian float slice (the caller checks the length).
+#[inline]
+pub fn read_value<T: WireReal>(bytes: &[u8], i: usize) -> T {
+    T::read_le(&bytes[i * T::BYTES..(i + 1) * T::BYTES])
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn crc_check_value() {
+        assert_eq!(crc32(b"123456789"), 0xCBF4_3926);
+        assert_eq!(crc32(b""), 0);
+    }
+
+    #[test]
+    fn cobs_round_trips() {
+        let cases: [&[u8]; 6] = [
+            &[],
+            &[0],
+            &[0, 0],
+            &[1, 2, 3],
+            &[0x11, 0x22, 0x00, 0x33],
+            &[0xFF; 600],
+        ];
+        for c in cases {
+            let mut enc = [0u8; 1024];
+            let n = cobs_encode(c, &mut enc).unwrap();
+            assert!(n <= cobs_max_len(c.len()));
+            assert!(!enc[..n].contains(&0));
+            let m = cobs_decode_in_place(&mut enc[..n]).unwrap();
+            assert_eq!(&enc[..m], c);
+        }
+        let long: std::vec::Vec<u8> = (0..1000u32).map(|i| (i % 7) as u8).collect();
+        let mut enc = [0u8; 1100];
+        let n = cobs_encode(&long, &mut enc).unwrap();
+        let m = cobs_decode_in_place(&mut enc[..n]).unwrap();
+        assert_eq!(&enc[..m], &long[..]);
+        assert!(cobs_encode(&long, &mut [0u8; 100]).is_none());
+    }
+
+    #[test]
+    fn frame_round_trip_and_rejections() {
+        let vals = [1.5f32, -2.0, 3.25];
+        let mut vb = [0u8; 12];
+        write_values(&vals, &mut vb).unwrap();
+        let msg = Message::Samples {
+            first: 7,
+            values: &vb,
+        };
+        let mut raw = [0u8; 128];
+        let mut out = [0u8; 140];
+        let n = encode_frame(42, &msg, &mut raw, &mut out).unwrap();
+        assert_eq!(out[n - 1], 0);
+        let mut f = out[..n - 1].to_vec();
+        let pkt = decode_frame(&mut f).unwrap();
+        assert_eq!(pkt.seq, 42);
+        assert_eq!(pkt.msg, msg);
+        // one flipped bit anywhere: rejected
+        for i in 0..n - 1 {
+            for bit in 0..8 {
+                let mut g = out[..n - 1].to_vec();
+                g[i] ^= 1 << bit;
+                assert!(decode_frame(&mut g).is_err(), "byte {i} bit {bit}");
+            }
+        }
+        // truncated
+        let mut g = out[..n - 3].to_vec();
+        assert!(decode_frame(&mut g).is_err());
+        assert_eq!(decode_frame(&mut [1u8, 1]), Err(ErrorCode::Truncated));
+        // wrong version with a valid CRC
+        let mut r = [0u8; 64];
+        r[0] = VERSION + 1;
+        let body = postcard::to_slice(
+            &Packet {
+                seq: 1,
+                msg: Message::Reset,
+            },
+            &mut r[1..60],
+        )
+        .unwrap()
+        .len();
+        let crc = crc32(&r[..1 + body]);
+        r[1 + body..5 + body].copy_from_slice(&crc.to_le_bytes());
+        let mut e = [0u8; 80];
+        let k = cobs_encode(&r[..5 + body], &mut e).unwrap();
+        assert_eq!(decode_frame(&mut e[..k]), Err(ErrorCode::WrongVersion));
+        // unknown variant with a valid CRC
+        let raw_unknown = [VERSION, 1, 99];
+        let crc = crc32(&raw_unknown);
+        let mut r2 = raw_unknown.to_vec();
+        r2.extend_from_slice(&crc.to_le_bytes());
+        let k = cobs_encode(&r2, &mut e).unwrap();
+        assert_eq!(decode_frame(&mut e[..k]), Err(ErrorCode::UnknownMessage));
+    }
+
+    #[test]
+    fn deframer_resyncs_and_reports_oversize() {
+        let mut d = Deframer::<8>::new();
+        let mut frames = 0;
+        let mut over = 0;
+        for &b in &[1u8, 2, 0, 0, 9, 9, 9, 9, 9, 9, 9, 9, 9, 9, 0, 3, 3, 0] {
+            match d.push(b) {
+                Event::Frame(_) => frames += 1,
+                Event::Oversize => over += 1,
+                Event::Pending => {}
+            }
+        }
+        assert_eq!((frames, over), (2, 1));
+        assert_eq!(max_raw(512), 508);
+        assert!(cobs_max_len(max_raw(512)) < 512);
+    }
+}
