@@ -35,6 +35,8 @@ enum Command {
     Simulate(SimulateArgs),
     /// Frozen-scheduling stability region of a model's one-step predictor A(mu) - K(mu) C.
     Stability(StabilityArgs),
+    /// Talk to a device over a serial port: info, stream a file, pull statistics, solve, push a model.
+    Device(crate::link::DeviceArgs),
 }
 
 #[derive(Debug, Args)]
@@ -171,6 +173,7 @@ where
         Command::Validate(a) => validate_cmd(&a, out),
         Command::Simulate(a) => simulate_cmd(&a, out),
         Command::Stability(a) => stability_cmd(&a, out),
+        Command::Device(a) => crate::link::device_cmd(&a, out),
     }
 }
 

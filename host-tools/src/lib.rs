@@ -6,11 +6,13 @@
 //! [`lpvss`] (the state-space model, simulation, predictor), [`simulate`] (any model on a
 //! data file), [`metrics`] (VAF, BFR), [`linalg`] (eigen, least squares), [`pbsid`]
 //! (LPV-PBSID_opt, kernel paper Algorithms 1-2), [`systems`] (benchmark generators),
+//! [`link`] (the device link over a serial port),
 //! [`cli`] (the command line).
 
 pub mod cli;
 pub mod data;
 pub mod linalg;
+pub mod link;
 pub mod lpvss;
 pub mod metrics;
 pub mod model;
