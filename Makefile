@@ -3,14 +3,15 @@
 
 # Debian packages the build and the tests need (installed by scripts/setup.sh if missing).
 # libopenblas-dev: BLAS + LAPACK for clarabel's SDP cones (H-infinity observer LMI), linked by host-tools/build.rs.
-DEB_PACKAGES := pkg-config libopenblas-dev
+# qemu-system-arm: the firmware's Cortex-M4F board (mps2-an386) for make device-test.
+DEB_PACKAGES := pkg-config libopenblas-dev qemu-system-arm
 
-.PHONY: demo test setup check-fmt clippy core-thumb test-all bench
+.PHONY: demo test setup check-fmt clippy core-thumb test-all bench device-test
 
 demo: setup
 	cargo run --release -p lpvid-host --bin lpvid -- demo
 
-test: setup check-fmt clippy core-thumb test-all
+test: setup check-fmt clippy core-thumb test-all device-test
 
 setup:
 	bash scripts/setup.sh $(DEB_PACKAGES)
@@ -28,6 +29,11 @@ core-thumb:
 # Unit, integration and acceptance tests (release: the acceptance tests are Monte-Carlo runs).
 test-all:
 	cargo test --workspace --release
+
+# The firmware in QEMU with its UART on a pseudo-terminal: stream a fixture through
+# `lpvid device`, pull the statistics, compare with the file-based fit (scripts/device-test.sh).
+device-test: setup
+	bash scripts/device-test.sh
 
 bench:
 	cargo bench --workspace

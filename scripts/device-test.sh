@@ -1,0 +1,108 @@
+#!/usr/bin/env bash
+# make device-test: build the firmware, boot it in QEMU (mps2-an386, Cortex-M4F) with its
+# UART on a pseudo-terminal, stream a fixture through `lpvid device`, pull the statistics
+# and check them (and the model fitted from them) against the host's file-based result.
+# The last line is a one-line summary.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+ROOT=$PWD
+
+command -v qemu-system-arm >/dev/null 2>&1 || bash scripts/setup.sh qemu-system-arm
+
+FIXTURE=${FIXTURE:-fixtures/b2-train.csv}
+PAST=${PAST:-3}
+# a longer stream for the throughput figure (8000 samples, r = l = s = 1)
+SPEED_FIXTURE=${SPEED_FIXTURE:-fixtures/b6-train.csv}
+
+echo "device-test: building the firmware (thumbv7em-none-eabihf, its own target dir)"
+(cd firmware && cargo build --release --quiet)
+ELF=$ROOT/firmware/target/thumbv7em-none-eabihf/release/lpvid-firmware
+echo "device-test: building the host tool"
+cargo build --release --quiet -p lpvid-host --bin lpvid
+LPVID=${CARGO_TARGET_DIR:-$ROOT/target}/release/lpvid
+
+if command -v arm-none-eabi-size >/dev/null 2>&1; then
+  arm-none-eabi-size "$ELF" | sed 's/^/device-test: /'
+else
+  llvm-size "$ELF" 2>/dev/null | sed 's/^/device-test: /' || true
+fi
+
+TMP=$(mktemp -d)
+QPID=""
+cleanup() {
+  exec 3>&- 2>/dev/null || true
+  exec 4>&- 2>/dev/null || true
+  if [ -n "$QPID" ]; then kill "$QPID" 2>/dev/null || true; wait "$QPID" 2>/dev/null || true; fi
+  rm -rf "$TMP"
+}
+trap cleanup EXIT
+
+# -S: the guest waits until `cont`, so nothing it sends is lost before the port is open.
+MON_PORT=$((20000 + RANDOM % 20000))
+qemu-system-arm -machine mps2-an386 -cpu cortex-m4 -display none \
+  -semihosting-config enable=on,target=native \
+  -serial pty -monitor "tcp:127.0.0.1:$MON_PORT,server=on,wait=off" \
+  -S -kernel "$ELF" >"$TMP/qemu.out" 2>"$TMP/qemu.err" &
+QPID=$!
+
+PTY=""
+for _ in $(seq 100); do
+  PTY=$(grep -o '/dev/pts/[0-9]*' "$TMP/qemu.out" 2>/dev/null | head -1 || true)
+  [ -n "$PTY" ] && break
+  kill -0 "$QPID" 2>/dev/null || { cat "$TMP/qemu.err" >&2; echo "device-test: QEMU exited" >&2; exit 1; }
+  sleep 0.1
+done
+[ -n "$PTY" ] || { echo "device-test: QEMU printed no pseudo-terminal" >&2; exit 1; }
+echo "device-test: QEMU $(qemu-system-arm --version | head -1 | sed 's/.*version //'), UART0 on $PTY"
+
+# Hold the pseudo-terminal open for the whole session (QEMU drops output and is slow to
+# reconnect while nobody has it open); this descriptor never reads.
+exec 3<>"$PTY"
+for _ in $(seq 50); do
+  if exec 4<>"/dev/tcp/127.0.0.1/$MON_PORT" 2>/dev/null; then break; fi
+  sleep 0.1
+done
+echo cont >&4
+
+dev() { "$LPVID" device --port "$PTY" --json "$@"; }
+retries() { sed -n 's/.*"retries": \([0-9]*\).*/\1/p' "$1" | head -1; }
+field() { sed -n "s/.*\"$2\": \\([-0-9.eE+a-z][-0-9.eE+a-z]*\\).*/\\1/p" "$1" | head -1; }
+
+dev info >"$TMP/info.json"
+echo "device-test: $(tr -d '\n ' <"$TMP/info.json" | grep -o '"info":{[^}]*}')"
+
+dev stream "$FIXTURE" --past "$PAST" >"$TMP/stream.json"
+SAMPLES=$(field "$TMP/stream.json" samples)
+echo "device-test: streamed $SAMPLES samples of $FIXTURE (p = $PAST)"
+
+dev pull --compare "$FIXTURE" --stats-tol 1e-5 --model-tol 1e-4 --out "$TMP/model.json" --stats "$TMP/stats.json" >"$TMP/pull.json"
+STATS_DIFF=$(field "$TMP/pull.json" stats_vs_f64)
+SAME_DIFF=$(field "$TMP/pull.json" stats_vs_same_type)
+MODEL_DIFF=$(field "$TMP/pull.json" model_vs_file_fit)
+WINDOWS=$(field "$TMP/pull.json" windows)
+echo "device-test: pulled $(field "$TMP/pull.json" values) statistic values ($WINDOWS windows): vs host f64 $STATS_DIFF (relative), vs host f32 $SAME_DIFF; model vs file fit $MODEL_DIFF"
+
+dev solve --lambda-ratio 0.01 >"$TMP/solve.json"
+echo "device-test: on-device Lasso: $(tr -d '\n ' <"$TMP/solve.json" | grep -o '"summary":{[^}]*}')"
+
+# the model back to the device: its predictor runs on a second pass over the same data
+dev push "$TMP/model.json" >"$TMP/push.json"
+dev reset >"$TMP/reset.json"
+dev stream "$FIXTURE" --past "$PAST" --resume >"$TMP/stream2.json"
+dev info >"$TMP/info2.json"
+PRED=$(tr -d '\n ' <"$TMP/info2.json" | grep -o '"prediction":{[^}]*}' || true)
+echo "device-test: on-device one-step predictor after the second pass: $PRED"
+[ -n "$PRED" ] || { echo "device-test: no prediction record" >&2; exit 1; }
+
+# throughput: a longer file
+dev stream "$SPEED_FIXTURE" --past 2 >"$TMP/speed.json"
+RATE=$(field "$TMP/speed.json" samples_per_second)
+SPEED_N=$(field "$TMP/speed.json" samples)
+echo "device-test: throughput $SPEED_FIXTURE: $SPEED_N samples at $(printf '%.0f' "$RATE") samples/s through the emulated UART"
+
+TOTAL_RETRIES=0
+for f in info stream pull solve push reset stream2 info2 speed; do
+  TOTAL_RETRIES=$((TOTAL_RETRIES + $(retries "$TMP/$f.json")))
+done
+STREAMED=$((SAMPLES * 2 + SPEED_N))
+echo "device-test: PASS: $STREAMED samples streamed, $TOTAL_RETRIES frames retried, max statistic difference $STATS_DIFF (relative to f64 host; model output difference $MODEL_DIFF)"
