@@ -7,6 +7,9 @@
 //! scheduling signal centred and scaled — an exact affine re-parametrisation of mu) and the
 //! model is returned in original units.
 
+use lpvid::dictionary::{
+    dictionary_gram_len, dictionary_storage_len, DictionaryConfig, KernelDictionary, Step,
+};
 use lpvid::kernel::dual_kernel;
 use lpvid::window::write_pbsid_regressor;
 use lpvid::{
@@ -123,6 +126,12 @@ pub struct PbsidOptions {
     /// short-memory over deep Kronecker terms; it does not change an unregularised
     /// full-rank fit.
     pub sched_weight: f64,
+    /// Kernel row selection (Algorithm 3): at most this many rows of Z^T Z (dictionary
+    /// windows) in the kernel form; None uses every row.
+    pub kernel_rows: Option<usize>,
+    /// Admission tolerance of Algorithm 3, relative to the mean kernel diagonal k(w, w);
+    /// 0 keeps exactly the rows that span (section 6.1 for periodic scheduling).
+    pub kernel_tol: f64,
 }
 
 impl PbsidOptions {
@@ -137,6 +146,8 @@ impl PbsidOptions {
             max_order: 20,
             future: None,
             sched_weight: DEFAULT_SCHED_WEIGHT,
+            kernel_rows: None,
+            kernel_tol: 0.0,
         }
     }
 }
@@ -610,6 +621,10 @@ pub fn fit_with_validation(
     let primal_cost = nb * qf * qf / 2.0 + 10.0 * qf * qf * qf;
     let dual_cost = nb * nb * (p * p) as f64 + 10.0 * nb * nb * nb;
     let (solver, solver_reason) = match opts.solver {
+        _ if opts.kernel_rows.is_some() => (
+            Solver::Dual,
+            "kernel form with row selection (Algorithm 3)".to_string(),
+        ),
         Solver::Primal => (Solver::Primal, "primal form requested".to_string()),
         Solver::Dual => (Solver::Dual, "kernel form requested".to_string()),
         Solver::Auto => {
@@ -879,6 +894,9 @@ fn dual_states(
 ) -> Result<(Vec<f64>, DMatrix<f64>, RegressionInfo), FitError> {
     let (p, l) = (dims.p, dims.l);
     let nb = windows;
+    if let Some(rows) = opts.kernel_rows {
+        return selected_rows_states(dims, f, slab, windows, rows, opts);
+    }
     let mut g = DMatrix::<f64>::zeros(nb, nb);
     for a in 0..nb {
         for b in a..nb {
@@ -1042,6 +1060,140 @@ fn bpdn_states(
         dof: sel.active as f64,
     };
     Ok((sv, x, info, reason))
+}
+
+/// Algorithm 3 (kernel selection): the dictionary of windows the core admits by its
+/// linear-dependence test (at most `max_rows`, tolerance relative to the mean k(w, w)).
+pub fn select_kernel_rows(
+    dims: &PbsidDims,
+    slab: &Slab<'_, f64>,
+    max_rows: usize,
+    tol: f64,
+    feedthrough: bool,
+) -> Result<(Vec<usize>, String), FitError> {
+    let n = slab.len();
+    if max_rows == 0 {
+        return Err(FitError("--kernel-rows must be at least 1".into()));
+    }
+    let windows = n - dims.p;
+    let mean_diag = (0..windows)
+        .map(|k| dual_kernel(slab, k, slab, k, dims.p, feedthrough))
+        .sum::<f64>()
+        / windows as f64;
+    let config = DictionaryConfig::new(max_rows, tol * mean_diag, feedthrough);
+    let (r, l, s, p) = (dims.r, dims.l, dims.s, dims.p);
+    let mut dict = KernelDictionary::with_storage(
+        *dims,
+        config,
+        vec![0.0; lpvid::window_storage_len(r, l, s, p)],
+        vec![0.0; dictionary_storage_len(r, l, s, p, max_rows)],
+        vec![0.0; dictionary_gram_len(l, max_rows)],
+    )?;
+    let mut rows = Vec::new();
+    for k in 0..n {
+        let step = dict.update(slab.u(k), slab.y(k), &slab.mu(k)[1..])?;
+        if let Step::Admitted { window, .. } = step {
+            if (window as usize) < windows {
+                rows.push(window as usize);
+            }
+        }
+    }
+    let mut why = format!(
+        "{} of {windows} rows kept by the linear-dependence test (tolerance {tol:.1e} x mean k(w,w))",
+        rows.len()
+    );
+    if dict.rejected_full() > 0 {
+        why.push_str(&format!(
+            "; {} more independent rows did not fit in --kernel-rows {max_rows}",
+            dict.rejected_full()
+        ));
+    }
+    if let Some(period) = detect_period(slab, dims.s) {
+        why.push_str(&format!(
+            "; the scheduling is periodic with period {period} (section 6.1)"
+        ));
+    }
+    Ok((rows, why))
+}
+
+/// The smallest period P <= N/3 with p_{k+P} = p_k for every k (to 1e-9 relative), if any.
+pub fn detect_period(slab: &Slab<'_, f64>, s: usize) -> Option<usize> {
+    let n = slab.len();
+    if s == 0 {
+        return None;
+    }
+    let scale = (0..n)
+        .flat_map(|k| slab.mu(k)[1..].iter().map(|v| v.abs()))
+        .fold(0.0, f64::max)
+        .max(1e-300);
+    (1..=n / 3).find(|&per| {
+        (0..n - per).all(|k| {
+            slab.mu(k)[1..]
+                .iter()
+                .zip(&slab.mu(k + per)[1..])
+                .all(|(a, b)| (a - b).abs() <= 1e-9 * scale)
+        })
+    })
+}
+
+/// Kernel form restricted to the rows D of Algorithm 3: min ||Y - alpha_D K_{D,:}||^2
+/// (+ Tikhonov with GCV, the same spectrum formula as the other forms), then eq. (25)
+/// with alpha zero outside D.
+fn selected_rows_states(
+    dims: &PbsidDims,
+    f: usize,
+    slab: &Slab<'_, f64>,
+    windows: usize,
+    max_rows: usize,
+    opts: &PbsidOptions,
+) -> Result<(Vec<f64>, DMatrix<f64>, RegressionInfo), FitError> {
+    let (p, l) = (dims.p, dims.l);
+    let nb = windows;
+    let (rows, _) = select_kernel_rows(dims, slab, max_rows, opts.kernel_tol, opts.feedthrough)?;
+    let m = rows.len();
+    let kd = DMatrix::from_fn(m, nb, |a, b| {
+        dual_kernel(slab, rows[a], slab, b, p, opts.feedthrough)
+    });
+    let y = DMatrix::from_fn(l, nb, |j, k| slab.y(k + p)[j]);
+    let s_ff = &kd * kd.transpose();
+    let s_fy = &kd * y.transpose();
+    let (vals, vecs) = sym_eig(&s_ff)?;
+    let b = vecs.transpose() * &s_fy;
+    let spec = Spectrum {
+        energy: (0..m)
+            .map(|i| {
+                if vals[i] > 0.0 {
+                    b.row(i).norm_squared() / vals[i]
+                } else {
+                    0.0
+                }
+            })
+            .collect(),
+        vals: vals.clone(),
+        total: y.norm_squared(),
+        rows: nb as f64,
+    };
+    let (lam, dof, cut) = choose_lambda(opts.reg, &spec);
+    let mut sb = b;
+    for (i, &v) in vals.iter().enumerate() {
+        sb.row_mut(i).scale_mut(filter(v, lam, cut));
+    }
+    let alpha_d = (vecs * sb).transpose(); // l x m
+    let mut alpha = DMatrix::zeros(l, nb);
+    for (a, &w) in rows.iter().enumerate() {
+        alpha.set_column(w, &alpha_d.column(a));
+    }
+    let gkz = dual_gamma_kz_matrix(dims, f, slab, &alpha, nb + 1);
+    let reg_cols = gkz.columns(0, nb);
+    let w = reg_cols * reg_cols.transpose();
+    let (sv, u) = svd_left(&w)?;
+    let x = u.transpose() * gkz;
+    let vmax = vals.first().copied().unwrap_or(0.0);
+    let lambda = match opts.reg {
+        Reg::None | Reg::BpdnAic | Reg::BpdnSv => None,
+        _ => Some((lam, vmax)),
+    };
+    Ok((sv, x, RegressionInfo { lambda, dof }))
 }
 
 /// Eq. (25): row block i of Gamma^p K^p Z is alpha sum_{j >= i} (Z^{i,j})^T Z^{1,j}. Entry
