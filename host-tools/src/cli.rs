@@ -72,7 +72,15 @@ struct PbsidArgs {
     /// Solve the regression from the primal statistics even when the kernel form is cheaper.
     #[arg(long)]
     primal: bool,
-    /// Regularisation of the regression: none (minimum norm) or tikhonov-gcv.
+    /// Kernel row selection (Algorithm 3): keep at most M rows of Z^T Z (implies --kernel).
+    #[arg(long, value_name = "M", conflicts_with = "primal")]
+    kernel_rows: Option<usize>,
+    /// Admission tolerance of the row selection, relative to the mean kernel diagonal
+    /// (0 keeps exactly the rows that span: the periodic-scheduling reduction).
+    #[arg(long, default_value_t = 0.0)]
+    kernel_tol: f64,
+    /// Regularisation of the regression: none (minimum norm), tikhonov-gcv, or sparse
+    /// bpdn-aic / bpdn-sv (BPDN-SV scores on --val, else on the last quarter of --train).
     #[arg(long, default_value = "tikhonov-gcv")]
     reg: Reg,
     /// Observer gain: ls (least squares K from the innovation estimates) or hinf (the
@@ -242,6 +250,8 @@ fn fit_record(
         "feedthrough": opts.feedthrough,
         "observer": "ls",
         "sched_weight": opts.sched_weight,
+        "kernel_rows": opts.kernel_rows,
+        "kernel_tol": opts.kernel_tol,
         "regressors": fit.q,
         "windows": fit.windows,
         "singular_values": fit.singular_values,
@@ -263,6 +273,8 @@ fn reg_name(r: Reg) -> String {
         Reg::None => "none".into(),
         Reg::TikhonovGcv => "tikhonov-gcv".into(),
         Reg::Tikhonov(v) => format!("tikhonov={v}"),
+        Reg::BpdnAic => "bpdn-aic".into(),
+        Reg::BpdnSv => "bpdn-sv".into(),
     }
 }
 
@@ -322,6 +334,8 @@ fn pbsid_options(a: &PbsidArgs) -> PbsidOptions {
     };
     o.future = a.future;
     o.sched_weight = a.sched_weight;
+    o.kernel_rows = a.kernel_rows;
+    o.kernel_tol = a.kernel_tol;
     o.max_order = a.max_order;
     o
 }
@@ -345,7 +359,12 @@ fn run_pbsid(
 ) -> Result<PbsidRun, CliError> {
     let (path, ds, bytes) = train;
     let (map, sig) = training_signals(ds, opts.past)?;
-    let fit = pbsid::fit(&sig, opts).map_err(|e| CliError::Other(format!("{}: {e}", ds.source)))?;
+    let val_sig = match val {
+        Some(v) if opts.reg == Reg::BpdnSv => Some(map.evaluate(v)?),
+        _ => None,
+    };
+    let fit = pbsid::fit_with_validation(&sig, val_sig.as_ref(), opts)
+        .map_err(|e| CliError::Other(format!("{}: {e}", ds.source)))?;
     let names: Vec<String> = map
         .scheduling
         .iter()
