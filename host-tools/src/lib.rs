@@ -5,10 +5,12 @@
 //! Where each idea lives: [`data`] (CSV), [`model`] (model JSON, signal factors),
 //! [`lpvss`] (the state-space model, simulation, predictor), [`simulate`] (any model on a
 //! data file), [`metrics`] (VAF, BFR), [`linalg`] (eigen, least squares), [`pbsid`]
-//! (LPV-PBSID_opt, kernel paper Algorithms 1-2), [`systems`] (benchmark generators),
+//! (LPV-PBSID_opt, kernel paper Algorithms 1-2), [`bpdn`] (sparse estimation, section 4.2 of
+//! the sparse paper), [`systems`] (benchmark generators),
 //! [`link`] (the device link over a serial port),
 //! [`cli`] (the command line).
 
+pub mod bpdn;
 pub mod cli;
 pub mod data;
 pub mod linalg;
