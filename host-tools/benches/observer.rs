@@ -28,6 +28,8 @@ fn kalman_gain(a: &DMatrix<f64>, c: &DMatrix<f64>, nc: &NoiseCov) -> (DMatrix<f6
         let h = c * &x * c.transpose() + &nc.r;
         let hinv = h.try_inverse().expect("C X C' + R invertible");
         let next = a * &x * a.transpose() + &nc.q - &g * &hinv * g.transpose();
+        // keep X symmetric: asymmetric rounding grows through an unstable A
+        let next = (&next + next.transpose()) * 0.5;
         let diff = (&next - &x).amax();
         x = next;
         if diff <= 1e-12 * x.amax().max(1e-300) {

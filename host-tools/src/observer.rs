@@ -74,7 +74,7 @@ pub const DEFAULT_MARGIN: f64 = 1e-6;
 pub const DEFAULT_GRID: usize = 1001;
 
 /// Largest total number of grid points of the certificate.
-pub const MAX_GRID_POINTS: usize = 40_000;
+pub const MAX_GRID_POINTS: usize = 10_000;
 
 /// Why an observer design was not made, in words.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
@@ -640,10 +640,30 @@ struct SdpSolution {
     solve_time: f64,
 }
 
+extern "C" {
+    /// OpenBLAS's thread count (the system library linked by build.rs).
+    fn openblas_set_num_threads(n: std::os::raw::c_int);
+}
+
+/// The SDP's blocks are at most 4n x 4n: BLAS threads only add synchronisation (measured on
+/// the 2-core machine: the n = 4, 4-vertex solve took 26-29 ms with two OpenBLAS threads,
+/// 11-16 ms with one). Use one thread unless the user set OPENBLAS_NUM_THREADS.
+fn single_thread_blas() {
+    static ONCE: std::sync::Once = std::sync::Once::new();
+    ONCE.call_once(|| {
+        if std::env::var_os("OPENBLAS_NUM_THREADS").is_none() {
+            // SAFETY: a plain setter of OpenBLAS's global thread count, called once before
+            // any BLAS call of ours.
+            unsafe { openblas_set_num_threads(1) }
+        }
+    });
+}
+
 /// min c^T x s.t. F_j(x) - margin I in the PSD cone for every LMI j, with clarabel: rows of
 /// the upper triangle in column-major order, off-diagonal entries scaled by sqrt(2), and
 /// `b - A x` in the cone (RECIPES.md).
 fn solve_sdp(lmis: &[AffineLmi], cost: &[f64], margin: f64) -> SdpSolution {
+    single_thread_blas();
     let nvar = cost.len();
     let sqrt2 = std::f64::consts::SQRT_2;
     let (mut ri, mut ci, mut vv) = (Vec::new(), Vec::new(), Vec::new());
