@@ -100,6 +100,16 @@ RATE=$(field "$TMP/speed.json" samples_per_second)
 SPEED_N=$(field "$TMP/speed.json" samples)
 echo "device-test: throughput $SPEED_FIXTURE: $SPEED_N samples at $(printf '%.0f' "$RATE") samples/s through the emulated UART"
 
+# stack high-water mark: the firmware paints free RAM at boot; dump the top 256 KiB of RAM
+# (the stack grows down from 0x2040_0000) and find the first untouched paint word
+echo "pmemsave 0x203C0000 0x40000 \"$TMP/ram.bin\"" >&4
+for _ in $(seq 50); do
+  [ "$(stat -c %s "$TMP/ram.bin" 2>/dev/null || echo 0)" = 262144 ] && break
+  sleep 0.1
+done
+STACK=$(od -An -v -t x4 -w4 "$TMP/ram.bin" 2>/dev/null | awk '{w[NR]=$1} END {run=0; for (i=NR; i>0; i--) { if (w[i]=="a5a5a5a5") { run++; if (run==16) { print (NR-(i+15))*4; exit } } else run=0 } print "unknown"}')
+echo "device-test: firmware stack high-water mark: $STACK bytes (after configure, stream, pull, solve, push, predict)"
+
 TOTAL_RETRIES=0
 for f in info stream pull solve push reset stream2 info2 speed; do
   TOTAL_RETRIES=$((TOTAL_RETRIES + $(retries "$TMP/$f.json")))

@@ -83,8 +83,29 @@ impl Uart {
     }
 }
 
+/// Fill the free RAM between the end of .bss and just below the current stack pointer with
+/// a pattern, so a RAM dump (QEMU monitor `pmemsave`, see scripts/device-test.sh) shows the
+/// stack's high-water mark: the first pattern word below the top of RAM.
+fn paint_stack() {
+    extern "C" {
+        static mut __ebss: u32;
+    }
+    let start = (addr_of_mut!(__ebss) as usize + 3) & !3;
+    let end = cortex_m::register::msp::read() as usize - 256;
+    let mut p = start;
+    while p < end {
+        // SAFETY: free RAM between the statics and the live stack frame, word aligned.
+        unsafe { write_volatile(p as *mut u32, STACK_PAINT) };
+        p += 4;
+    }
+}
+
+/// The stack paint pattern.
+const STACK_PAINT: u32 = 0xA5A5_A5A5;
+
 #[entry]
 fn main() -> ! {
+    paint_stack();
     let uart = Uart::uart0();
     uart.init();
     // SAFETY: the only reference to ENGINE, taken once before the loop.

@@ -38,6 +38,12 @@ use crate::pbsid::{self, Order, PbsidFit, PbsidOptions, Reg, Solver};
 /// Receive buffer of the host's deframer (frames are at most a device's `max_frame`).
 const HOST_FRAME_BUF: usize = 8192;
 
+/// Retransmissions of a multi-sample frame (or multi-value pull) before it is halved.
+const SHRINK_AFTER: u32 = 4;
+
+/// Clean exchanges before a shrunk frame size doubles again.
+const GROW_AFTER: u32 = 8;
+
 /// Everything that can go wrong on the link.
 #[derive(Debug, thiserror::Error)]
 pub enum LinkError {
@@ -310,6 +316,11 @@ impl<P: Read + Write> Link<P> {
     /// Send `msg` and wait for its reply, retransmitting as described in the module docs.
     /// A device [`Reply::Error`] is returned as `Err(LinkError::Device)`.
     pub fn request(&mut self, msg: &Message<'_>) -> Result<Reply, LinkError> {
+        self.request_n(msg, self.opts.retries)
+    }
+
+    /// [`Link::request`] with at most `retries` retransmissions.
+    fn request_n(&mut self, msg: &Message<'_>, retries: u32) -> Result<Reply, LinkError> {
         self.seq = self.seq.wrapping_add(1);
         if self.seq == 0 {
             self.seq = 1;
@@ -320,7 +331,7 @@ impl<P: Read + Write> Link<P> {
             .map_err(|_| LinkError::Protocol("request too large for a frame".into()))?;
         let frame = self.out[..n + 1].to_vec();
         let mut last = String::from("none");
-        let attempts = self.opts.retries + 1;
+        let attempts = retries + 1;
         for attempt in 0..attempts {
             if attempt > 0 {
                 self.stats.retries += 1;
@@ -460,7 +471,12 @@ impl<P: Read + Write> Link<P> {
 
     /// Stream samples (row-major, each [u, y, p] of `per` values) starting at stream index
     /// `first`; `progress(done)` is called after every acknowledged frame. Returns the final
-    /// status; fails if the device reports anything but the expected next index.
+    /// status; fails if the device reports a next index outside the frame it acknowledged.
+    ///
+    /// Frames shrink on a noisy line: when a frame of several samples is not acknowledged
+    /// within a few retransmissions its batch is halved (down to one sample, which gets the
+    /// full retry budget), and it grows back after a run of clean exchanges. Re-sending a
+    /// smaller frame is safe: the device applies samples by stream index.
     pub fn stream(
         &mut self,
         rows: &[f64],
@@ -473,45 +489,69 @@ impl<P: Read + Write> Link<P> {
             return Err(LinkError::Protocol("sample rows of unequal length".into()));
         }
         let n = rows.len() / per;
-        let bs = self.batch_size(per);
+        let max_bs = self.batch_size(per);
+        let mut bs = max_bs;
+        let mut clean = 0u32;
         let fb = self.float_bytes();
         let mut done = 0usize;
         let mut last = None;
         let mut vals = std::mem::take(&mut self.vals);
-        while done < n {
+        let result = loop {
+            if done >= n {
+                break Ok(());
+            }
             let k = bs.min(n - done);
             f64_to_values(&rows[done * per..(done + k) * per], fb, &mut vals);
             let start = first + done as u32;
-            let reply = self.request(&Message::Samples {
-                first: start,
-                values: &vals,
-            });
-            let reply = match reply {
-                Ok(r) => r,
-                Err(e) => {
-                    self.vals = vals;
-                    return Err(e);
-                }
+            let retries = if bs > 1 {
+                SHRINK_AFTER.min(self.opts.retries)
+            } else {
+                self.opts.retries
             };
+            let before = self.stats.retries;
+            let reply = self.request_n(
+                &Message::Samples {
+                    first: start,
+                    values: &vals,
+                },
+                retries,
+            );
             match reply {
-                Reply::Status(s) if s.next_sample == start + k as u32 => last = Some(s),
-                Reply::Status(s) => {
-                    self.vals = vals;
-                    return Err(LinkError::Protocol(format!(
+                Ok(Reply::Status(s))
+                    if s.next_sample >= start + k as u32
+                        && (s.next_sample as usize) <= first as usize + n =>
+                {
+                    done = (s.next_sample - first) as usize;
+                    last = Some(s);
+                }
+                Ok(Reply::Status(s)) => {
+                    break Err(LinkError::Protocol(format!(
                         "device expects sample {} after samples {start}..{}",
                         s.next_sample,
                         start as usize + k
-                    )));
+                    )))
                 }
-                r => {
-                    self.vals = vals;
-                    return Err(unexpected("Status", &r));
+                Ok(r) => break Err(unexpected("Status", &r)),
+                Err(LinkError::NoReply { .. }) if bs > 1 => {
+                    bs = (bs / 2).max(1);
+                    clean = 0;
+                    continue;
                 }
+                Err(e) => break Err(e),
             }
-            done += k;
+            if self.stats.retries == before {
+                clean += 1;
+                if clean >= GROW_AFTER && bs < max_bs {
+                    bs = (bs * 2).min(max_bs);
+                    clean = 0;
+                }
+            } else {
+                clean = 0;
+            }
             progress(done);
-        }
+        };
         self.vals = vals;
+        result?;
         match last {
             Some(s) => Ok(s),
             None => self.status(),
@@ -524,23 +564,47 @@ impl<P: Read + Write> Link<P> {
             / info.float_bytes as usize)
             .clamp(1, u16::MAX as usize);
         let mut out = Vec::with_capacity(total);
+        // chunks shrink on a noisy line and grow back, as in `stream`
+        let mut size = chunk;
+        let mut clean = 0u32;
         while out.len() < total {
             let offset = out.len() as u32;
-            let count = chunk.min(total - out.len()) as u16;
+            let count = size.min(total - out.len()) as u16;
             let msg = if solution {
                 Message::PullSolution { offset, count }
             } else {
                 Message::PullStats { offset, count }
             };
-            match self.request(&msg)? {
-                Reply::Values {
+            let retries = if size > 1 {
+                SHRINK_AFTER.min(self.opts.retries)
+            } else {
+                self.opts.retries
+            };
+            let before = self.stats.retries;
+            match self.request_n(&msg, retries) {
+                Ok(Reply::Values {
                     offset: o,
                     total: t,
                     values,
-                } if o == offset && t as usize == total && !values.is_empty() => {
+                }) if o == offset && t as usize == total && !values.is_empty() => {
                     out.extend_from_slice(&values);
                 }
-                r => return Err(unexpected("Values", &r)),
+                Ok(r) => return Err(unexpected("Values", &r)),
+                Err(LinkError::NoReply { .. }) if size > 1 => {
+                    size = (size / 2).max(1);
+                    clean = 0;
+                    continue;
+                }
+                Err(e) => return Err(e),
+            }
+            if self.stats.retries == before {
+                clean += 1;
+                if clean >= GROW_AFTER && size < chunk {
+                    size = (size * 2).min(chunk);
+                    clean = 0;
+                }
+            } else {
+                clean = 0;
             }
         }
         out.truncate(total);
