@@ -29,6 +29,8 @@ enum Command {
     Demo(DemoArgs),
     /// Identify an LPV state-space model with LPV-PBSID_opt.
     Pbsid(PbsidArgs),
+    /// Identify an LPV-ARX model: LS, refined IV, bias-corrected IV, BC-IV-LASSO.
+    Arx(crate::arx::ArxArgs),
     /// Score a model on a data file: VAF and BFR per output.
     Validate(ValidateArgs),
     /// Simulate a model on a data file and write its outputs as CSV.
@@ -178,6 +180,7 @@ where
     match cli.command {
         Command::Demo(a) => demo(&a, out),
         Command::Pbsid(a) => pbsid_cmd(&a, out),
+        Command::Arx(a) => crate::arx::arx_cmd(&a, out),
         Command::Validate(a) => validate_cmd(&a, out),
         Command::Simulate(a) => simulate_cmd(&a, out),
         Command::Stability(a) => stability_cmd(&a, out),

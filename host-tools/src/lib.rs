@@ -5,11 +5,13 @@
 //! Where each idea lives: [`data`] (CSV), [`model`] (model JSON, signal factors),
 //! [`lpvss`] (the state-space model, simulation, predictor), [`simulate`] (any model on a
 //! data file), [`metrics`] (VAF, BFR), [`linalg`] (eigen, least squares), [`pbsid`]
-//! (LPV-PBSID_opt, kernel paper Algorithms 1-2), [`bpdn`] (sparse estimation, section 4.2 of
+//! (LPV-PBSID_opt, kernel paper Algorithms 1-2), [`arx`] (LPV-ARX: LS, refined IV, BC-IV,
+//! BC-IV-LASSO), [`bpdn`] (sparse estimation, section 4.2 of
 //! the sparse paper), [`systems`] (benchmark generators),
 //! [`link`] (the device link over a serial port),
 //! [`cli`] (the command line).
 
+pub mod arx;
 pub mod bpdn;
 pub mod cli;
 pub mod data;
