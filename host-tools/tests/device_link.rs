@@ -278,7 +278,7 @@ fn faults_at_1e3_per_byte_leave_the_statistics_identical() {
     println!(
         "fault rate {rate:e}/byte: {} faults in {} bytes (flips {}, drops {}, duplicates {}, garbage {}); \
          link: {} requests, {} retries ({} timeouts, {} bad reply frames, {} NAKs, {} stale replies); \
-         device: {} frames ok, {} rejected, {} duplicate samples not re-applied; fault-free run: {} retries",
+         device: {} frames ok, {} rejected, {} duplicate samples not re-applied; fault-free run: {} requests, {} retries",
         faults.total(),
         faults.bytes.load(Ordering::Relaxed),
         faults.flips.load(Ordering::Relaxed),
@@ -294,6 +294,7 @@ fn faults_at_1e3_per_byte_leave_the_statistics_identical() {
         status.frames_ok,
         status.frames_rejected,
         status.duplicate_samples,
+        clean_stats.requests,
         clean_stats.retries,
     );
     assert!(faults.total() > 0, "the proxy injected no fault");
