@@ -132,6 +132,9 @@ pub struct PbsidOptions {
     /// Admission tolerance of Algorithm 3, relative to the mean kernel diagonal k(w, w);
     /// 0 keeps exactly the rows that span (section 6.1 for periodic scheduling).
     pub kernel_tol: f64,
+    /// Refine the subspace estimate by output-error Levenberg-Marquardt ([`crate::refine`]):
+    /// removes the finite-window truncation bias on open-loop data.
+    pub refine: bool,
 }
 
 impl PbsidOptions {
@@ -148,6 +151,7 @@ impl PbsidOptions {
             sched_weight: DEFAULT_SCHED_WEIGHT,
             kernel_rows: None,
             kernel_tol: 0.0,
+            refine: false,
         }
     }
 }
@@ -198,6 +202,8 @@ pub struct PbsidFit {
     /// state): column k is x_{p+k}, k = 0..=N-p. `None` for a fit from statistics. The
     /// observer design (eq. (24)-(25) of the sparse paper) takes its residuals from it.
     pub states: Option<DMatrix<f64>>,
+    /// Output-error refinement, when asked: (MSE before, MSE after, iterations).
+    pub refinement: Option<(f64, f64, usize)>,
 }
 
 /// A fit that could not be made, with the reason in words.
@@ -706,7 +712,15 @@ pub fn fit_with_validation(
     let (order, order_reason) = choose_order(&sv, windows, opts)?;
     let states = x.rows(0, order).into_owned();
     let scaled = realize_from_states(&dims, &slab, &states, opts.feedthrough)?;
-    let model = unscale(&scaled, &scaling);
+    let mut model = unscale(&scaled, &scaling);
+    let mut refinement = None;
+    if opts.refine {
+        let r = crate::refine::refine_output_error(&model, sig, opts.feedthrough, 50);
+        if r.mse_after < r.mse_before {
+            model = r.model;
+        }
+        refinement = Some((r.mse_before, r.mse_after.min(r.mse_before), r.iterations));
+    }
     Ok(PbsidFit {
         model,
         singular_values: sv,
@@ -720,6 +734,7 @@ pub fn fit_with_validation(
         windows,
         scaling,
         states: Some(states),
+        refinement,
     })
 }
 
@@ -783,6 +798,7 @@ pub fn fit_from_stats<S: AsRef<[f64]> + AsMut<[f64]>>(
         windows,
         scaling,
         states: None,
+        refinement: None,
     })
 }
 
