@@ -81,6 +81,10 @@ struct PbsidArgs {
     /// (0 keeps exactly the rows that span: the periodic-scheduling reduction).
     #[arg(long, default_value_t = 0.0)]
     kernel_tol: f64,
+    /// Refine the subspace model by output-error Levenberg-Marquardt on the training data
+    /// (removes the finite-window bias on open-loop data; off by default).
+    #[arg(long)]
+    refine: bool,
     /// Regularisation of the regression: none (minimum norm), tikhonov-gcv, or sparse
     /// bpdn-aic / bpdn-sv (BPDN-SV scores on --val, else on the last quarter of --train).
     #[arg(long, default_value = "tikhonov-gcv")]
@@ -255,6 +259,10 @@ fn fit_record(
         "sched_weight": opts.sched_weight,
         "kernel_rows": opts.kernel_rows,
         "kernel_tol": opts.kernel_tol,
+        "refine": fit.refinement.map(|(before, after, it)| json!({
+            "method": "output-error Levenberg-Marquardt",
+            "mse_before": before, "mse_after": after, "iterations": it,
+        })),
         "regressors": fit.q,
         "windows": fit.windows,
         "singular_values": fit.singular_values,
@@ -339,6 +347,7 @@ fn pbsid_options(a: &PbsidArgs) -> PbsidOptions {
     o.sched_weight = a.sched_weight;
     o.kernel_rows = a.kernel_rows;
     o.kernel_tol = a.kernel_tol;
+    o.refine = a.refine;
     o.max_order = a.max_order;
     o
 }

@@ -22,5 +22,6 @@ pub mod metrics;
 pub mod model;
 pub mod observer;
 pub mod pbsid;
+pub mod refine;
 pub mod simulate;
 pub mod systems;
