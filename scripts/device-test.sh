@@ -15,7 +15,7 @@ PAST=${PAST:-3}
 SPEED_FIXTURE=${SPEED_FIXTURE:-fixtures/b6-train.csv}
 
 echo "device-test: building the firmware (thumbv7em-none-eabihf, its own target dir)"
-(cd firmware && cargo build --release --quiet)
+(cd firmware && cargo build --release --quiet --target-dir "$ROOT/firmware/target")
 ELF=$ROOT/firmware/target/thumbv7em-none-eabihf/release/lpvid-firmware
 echo "device-test: building the host tool"
 cargo build --release --quiet -p lpvid-host --bin lpvid
