@@ -82,6 +82,15 @@ MODEL_DIFF=$(field "$TMP/pull.json" model_vs_file_fit)
 WINDOWS=$(field "$TMP/pull.json" windows)
 echo "device-test: pulled $(field "$TMP/pull.json" values) statistic values ($WINDOWS windows): vs host f64 $STATS_DIFF (relative), vs host f32 $SAME_DIFF; model vs file fit $MODEL_DIFF"
 
+# f32 on the device vs f64 on the host: free-run VAF on the noise-free validation file
+VAL=${FIXTURE_VAL:-${FIXTURE%-train.csv}-val.csv}
+if [ -f "$VAL" ]; then
+  "$LPVID" pbsid --train "$FIXTURE" --past "$PAST" --primal --out "$TMP/file-model.json" --json >/dev/null
+  VAF_DEV=$("$LPVID" validate --model "$TMP/model.json" --data "$VAL" --json | sed -n 's/.*"vaf_mean": \([-0-9.eE+]*\).*/\1/p' | head -1)
+  VAF_FILE=$("$LPVID" validate --model "$TMP/file-model.json" --data "$VAL" --json | sed -n 's/.*"vaf_mean": \([-0-9.eE+]*\).*/\1/p' | head -1)
+  echo "device-test: free-run VAF on $VAL: model from the device's f32 statistics $VAF_DEV %, file fit in f64 $VAF_FILE %"
+fi
+
 dev solve --lambda-ratio 0.01 >"$TMP/solve.json"
 echo "device-test: on-device Lasso: $(tr -d '\n ' <"$TMP/solve.json" | grep -o '"summary":{[^}]*}')"
 
