@@ -131,13 +131,10 @@ pub fn refine_output_error(
             let h = 1e-7 * theta[p].abs().max(1e-3);
             let mut t2 = theta.clone();
             t2[p] += h;
-            match cost(&t2) {
-                Some((_, r2)) => {
-                    for (i, (a, b)) in r2.iter().zip(&r).enumerate() {
-                        jac[(i, p)] = (a - b) / h;
-                    }
+            if let Some((_, r2)) = cost(&t2) {
+                for (i, (a, b)) in r2.iter().zip(&r).enumerate() {
+                    jac[(i, p)] = (a - b) / h;
                 }
-                None => {}
             }
         }
         let jt = jac.transpose();
