@@ -39,6 +39,8 @@ enum Command {
     Stability(StabilityArgs),
     /// Talk to a device over a serial port: info, stream a file, pull statistics, solve, push a model.
     Device(crate::link::DeviceArgs),
+    /// Test a model's residual on validation data, name the missing effect, add it and refit.
+    Diagnose(crate::diagnose::DiagnoseArgs),
 }
 
 #[derive(Debug, Args)]
@@ -189,6 +191,7 @@ where
         Command::Simulate(a) => simulate_cmd(&a, out),
         Command::Stability(a) => stability_cmd(&a, out),
         Command::Device(a) => crate::link::device_cmd(&a, out),
+        Command::Diagnose(a) => crate::diagnose::run_cli(&a, out),
     }
 }
 

@@ -9,12 +9,14 @@
 //! BC-IV-LASSO), [`bpdn`] (sparse estimation, section 4.2 of
 //! the sparse paper), [`systems`] (benchmark generators),
 //! [`link`] (the device link over a serial port),
+//! [`diagnose`] (residual tests, missing effects, the fix),
 //! [`cli`] (the command line).
 
 pub mod arx;
 pub mod bpdn;
 pub mod cli;
 pub mod data;
+pub mod diagnose;
 pub mod linalg;
 pub mod link;
 pub mod lpvss;

@@ -1,0 +1,635 @@
+//! Closing the loop with measured data (DESIGN.md section 6): `lpvid diagnose` computes the
+//! residual of a model on validation data, tests it ([`residual`]), scores every candidate
+//! missing effect of the catalogue ([`effects`]) by how much of the held-out residual a refit
+//! with the effect added explains ([`refit`]), and with `--fix` adds the best one, refits
+//! with the model's own settings and reports the error before and after ([`report`]), with
+//! pictures ([`plots`]).
+//!
+//! Where each idea lives: [`stats`] (distributions, correlations, FFT, batch means, least
+//! squares on the core's Gram), [`residual`] (the tests), [`effects`] (catalogue, scoring,
+//! noise threshold), [`refit`] (the model's own settings, constant channels, scheduled output
+//! equation, noise model, BC-IV path), [`report`] (JSON and the engineer's note), [`plots`]
+//! (SVG).
+
+pub mod effects;
+pub mod plots;
+pub mod refit;
+pub mod report;
+pub mod residual;
+pub mod stats;
+
+use std::io::Write;
+use std::path::PathBuf;
+
+use serde::Serialize;
+
+use crate::cli::{score as score_model, CliError, Score};
+use crate::data::{DataError, Dataset};
+use crate::model::ModelFile;
+use crate::simulate::{simulate_signals, Mode};
+
+use effects::{candidates, evidence, significant, Context, Effect, Eval, Finding, Scored};
+use refit::{fit_spec, Fitted, Spec};
+use residual::{analyse, ResidualReport, ALPHA};
+
+/// What to do besides the diagnosis.
+#[derive(Debug, Clone)]
+pub struct Options {
+    /// Add the best effect and refit.
+    pub fix: bool,
+    /// Repeat the fix at most this many times while the error drops meaningfully.
+    pub max_steps: usize,
+    /// Worker threads for the candidate refits (0: the machine's parallelism).
+    pub threads: usize,
+}
+
+impl Default for Options {
+    fn default() -> Self {
+        Options {
+            fix: false,
+            max_steps: 1,
+            threads: 0,
+        }
+    }
+}
+
+/// One applied fix.
+#[derive(Debug, Clone, Serialize)]
+pub struct Applied {
+    /// 1-based step.
+    pub step: usize,
+    /// Effect name.
+    pub effect: &'static str,
+    /// What was added.
+    pub detail: String,
+    /// Fraction of the held-out error it explained.
+    pub explained: f64,
+    /// The residual it was scored on.
+    pub residual: &'static str,
+    /// Normalised validation MSE (mean over outputs of MSE / var y) before this step.
+    pub mse_before: f64,
+    /// ... and after.
+    pub mse_after: f64,
+    /// Mean free-run VAF before / after this step.
+    pub vaf_before: f64,
+    /// Mean free-run VAF after this step.
+    pub vaf_after: f64,
+}
+
+/// The diagnosis of one step (the model as it stood then).
+#[derive(Debug, Clone, Serialize)]
+pub struct Step {
+    /// 1-based.
+    pub step: usize,
+    /// Validation VAF (mean, free-run) of the null refit the candidates were compared with.
+    pub null_refit_vaf: f64,
+    /// Normalised validation MSE of the null refit (free-run, one-step).
+    pub null_refit_mse: (f64, f64),
+    /// Variants refit and scored.
+    pub variants: usize,
+    /// Ranked findings: above the threshold first, then by explained fraction.
+    pub findings: Vec<Finding>,
+    /// Effects that did not apply, with why.
+    pub not_applicable: Vec<(String, String)>,
+    /// Every variant refit and its score.
+    pub variants_scored: Vec<VariantScore>,
+}
+
+/// One refit variant and its score.
+#[derive(Debug, Clone, Serialize)]
+pub struct VariantScore {
+    /// Effect name.
+    pub effect: &'static str,
+    /// What it adds.
+    pub detail: String,
+    /// Fraction of the null refit's held-out error it removes (raw, before any adjustment).
+    pub explained: f64,
+    /// One-sided p-value.
+    pub p_value: f64,
+    /// Why it could not be scored.
+    pub error: Option<String>,
+    /// Wall time of the refit and its evaluation, seconds.
+    pub seconds: f64,
+}
+
+/// The statistical threshold, as reported.
+#[derive(Debug, Clone, Serialize)]
+pub struct Threshold {
+    /// Family-wise level.
+    pub alpha: f64,
+    /// Smallest explained fraction.
+    pub min_explained: f64,
+    /// The test, in words.
+    pub test: &'static str,
+}
+
+/// Residual tests of the given model on validation data.
+#[derive(Debug, Clone, Serialize)]
+pub struct Residuals {
+    /// Free-run residual.
+    pub free_run: ResidualReport,
+    /// One-step residual.
+    pub one_step: ResidualReport,
+}
+
+/// The report (`--json`).
+#[derive(Debug, Clone, Serialize)]
+pub struct Report {
+    /// "diagnose".
+    pub command: &'static str,
+    /// Model source.
+    pub model: String,
+    /// Training data.
+    pub train: String,
+    /// Validation data.
+    pub val: String,
+    /// Model type and dimensions in words.
+    pub model_summary: String,
+    /// VAF and BFR per output on validation data, free run, of the given model.
+    pub before: Score,
+    /// ... one-step prediction.
+    pub before_one_step: Score,
+    /// After the fixes (None without --fix or when nothing was applied).
+    pub after: Option<Score>,
+    /// ... one-step prediction.
+    pub after_one_step: Option<Score>,
+    /// Ranked findings of the first step.
+    pub findings: Vec<Finding>,
+    /// Fixes applied, in order.
+    pub applied: Vec<Applied>,
+    /// Every step's diagnosis.
+    pub steps: Vec<Step>,
+    /// Why the loop stopped.
+    pub stopped: String,
+    /// The noise threshold.
+    pub threshold: Threshold,
+    /// Residual tests of the given model.
+    pub residual: Residuals,
+    /// Remarks (missing fit settings, refit differences).
+    pub notes: Vec<String>,
+    /// Where the fixed model was written.
+    pub out: Option<String>,
+}
+
+/// Everything a diagnosis produces.
+#[derive(Debug, Clone)]
+pub struct Outcome {
+    /// The report.
+    pub report: Report,
+    /// The final model (the given one when nothing was applied).
+    pub model: ModelFile,
+    /// Evaluation of the given model on validation data.
+    pub before_eval: Eval,
+    /// Evaluation of the final model (when something was applied).
+    pub after_eval: Option<Eval>,
+    /// Singular values of the first null refit and of the final model's fit.
+    pub singular_values: (Vec<f64>, Vec<f64>),
+}
+
+fn mean_vaf(e: &Eval) -> f64 {
+    let v = crate::metrics::vaf_per_output(&e.y, &e.yhat_free, 0);
+    crate::metrics::mean(&v)
+}
+
+fn mode_name(m: Mode) -> &'static str {
+    match m {
+        Mode::FreeRun => "free-run",
+        Mode::Predictor => "one-step",
+    }
+}
+
+/// Refit and score every candidate, on `threads` worker threads.
+fn score_all(
+    cands: Vec<effects::Candidate>,
+    train: &Dataset,
+    val: &Dataset,
+    fit: &serde_json::Value,
+    base: &Eval,
+    threads: usize,
+) -> Vec<Scored> {
+    let loss_free = base.loss(Mode::FreeRun);
+    let loss_pred = base.loss(Mode::Predictor);
+    let threads = if threads == 0 {
+        std::thread::available_parallelism().map_or(1, |n| n.get())
+    } else {
+        threads
+    }
+    .clamp(1, cands.len().max(1));
+    let jobs: Vec<(usize, effects::Candidate)> = cands.into_iter().enumerate().collect();
+    let next = std::sync::atomic::AtomicUsize::new(0);
+    let mut results: Vec<Option<Scored>> = vec![None; jobs.len()];
+    let out = std::sync::Mutex::new(&mut results);
+    std::thread::scope(|s| {
+        for _ in 0..threads {
+            s.spawn(|| loop {
+                let i = next.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+                if i >= jobs.len() {
+                    break;
+                }
+                let c = jobs[i].1.clone();
+                let loss0 = match c.effect.metric() {
+                    Mode::FreeRun => &loss_free,
+                    Mode::Predictor => &loss_pred,
+                };
+                let sc = effects::score(c, train, val, fit, loss0);
+                out.lock().expect("no panics while holding the lock")[jobs[i].0] = Some(sc);
+            });
+        }
+    });
+    results.into_iter().flatten().collect()
+}
+
+/// Diagnose `model` with training data `train` and validation data `val`.
+pub fn diagnose(
+    model: &ModelFile,
+    train: &Dataset,
+    val: &Dataset,
+    opts: &Options,
+) -> Result<Outcome, String> {
+    let mut notes = Vec::new();
+    let mut spec = Spec::from_model(model, &mut notes)?;
+    let err = |e: CliError| e.to_string();
+    let before = score_model(model, val, Mode::FreeRun).map_err(err)?;
+    let before_one_step = score_model(model, val, Mode::Predictor).map_err(err)?;
+    let before_eval = Eval::new(model, val)?;
+    let free0 = analyse(
+        "free-run",
+        &before_eval.residual(Mode::FreeRun),
+        &before_eval.yhat_free,
+        val,
+    );
+    let one0 = analyse(
+        "one-step",
+        &before_eval.residual(Mode::Predictor),
+        &before_eval.yhat_free,
+        val,
+    );
+    let mut current = model.clone();
+    let mut base: Fitted = fit_spec(&spec, train, &current.fit)
+        .map_err(|e| format!("cannot refit the model with its own settings: {e}"))?;
+    let sv_first = base.singular_values.clone();
+    let mut steps: Vec<Step> = Vec::new();
+    let mut applied: Vec<Applied> = Vec::new();
+    let mut stopped = String::new();
+    let max_steps = if opts.fix { opts.max_steps.max(1) } else { 1 };
+    for step_no in 1..=max_steps {
+        let base_eval = Eval::new(&base.model, val)?;
+        if step_no == 1 {
+            let v_refit = mean_vaf(&base_eval);
+            if (v_refit - before.vaf_mean).abs() > 1.0 {
+                notes.push(format!(
+                    "the refit of the model with its own settings on the training data scores VAF {v_refit:.2} % on the validation data, the given model {:.2} %: candidates are compared with the refit",
+                    before.vaf_mean
+                ));
+            }
+        }
+        let train_sig = base
+            .model
+            .signals
+            .evaluate(train)
+            .map_err(|e| e.to_string())?;
+        let train_res =
+            &train_sig.y - simulate_signals(&base.model.kind, &train_sig, Mode::FreeRun);
+        let ctx = Context {
+            spec: &spec,
+            base: &base,
+            train,
+            val,
+            train_residual: &train_res,
+        };
+        let (cands, na) = candidates(&ctx);
+        let tried = cands.len();
+        let scored = score_all(cands, train, val, &current.fit, &base_eval, opts.threads);
+        let (free, one) = if step_no == 1 {
+            (free0.clone(), one0.clone())
+        } else {
+            (
+                analyse(
+                    "free-run",
+                    &base_eval.residual(Mode::FreeRun),
+                    &base_eval.yhat_free,
+                    val,
+                ),
+                analyse(
+                    "one-step",
+                    &base_eval.residual(Mode::Predictor),
+                    &base_eval.yhat_free,
+                    val,
+                ),
+            )
+        };
+        // best variant per effect
+        let mut best: Vec<(Effect, usize, usize)> = Vec::new(); // effect, index, variants
+        for (i, s) in scored.iter().enumerate() {
+            match best.iter_mut().find(|b| b.0 == s.cand.effect) {
+                Some(b) => {
+                    b.2 += 1;
+                    if s.explained > scored[b.1].explained {
+                        b.1 = i;
+                    }
+                }
+                None => best.push((s.cand.effect, i, 1)),
+            }
+        }
+        // the noise threshold: significant on the full training data, then replicated on
+        // each independent half of it (see effects::REPLICATION_ALPHA)
+        let full_sig: Vec<bool> = best
+            .iter()
+            .map(|b| {
+                let s = &scored[b.1];
+                significant(s.explained, s.p_value, tried)
+            })
+            .collect();
+        let mut replication: Vec<Option<Vec<(f64, f64)>>> = vec![None; best.len()];
+        if full_sig.iter().any(|v| *v) {
+            let halves = effects::halves(train);
+            let nulls: Vec<Option<Eval>> = halves
+                .iter()
+                .map(|h| {
+                    fit_spec(&spec, h, &current.fit)
+                        .ok()
+                        .and_then(|f| Eval::new(&f.model, val).ok())
+                })
+                .collect();
+            if nulls.iter().all(Option::is_some) {
+                let nulls: Vec<Eval> = nulls.into_iter().flatten().collect();
+                for (j, b) in best.iter().enumerate() {
+                    if full_sig[j] {
+                        replication[j] = Some(effects::replicate(
+                            &scored[b.1].cand,
+                            &halves,
+                            &nulls,
+                            val,
+                            &current.fit,
+                        ));
+                    }
+                }
+            } else {
+                notes.push("the null structure cannot be refit on half of the training data: findings are not replicated on independent halves".into());
+            }
+        }
+        let sig: Vec<bool> = (0..best.len())
+            .map(|j| {
+                full_sig[j]
+                    && replication[j]
+                        .as_ref()
+                        .is_none_or(|r| effects::replicated(r))
+            })
+            .collect();
+        // a noise model cannot explain the part of the residual an input-driven effect does
+        let det_best = best
+            .iter()
+            .zip(&sig)
+            .filter(|(b, sg)| b.0.metric() == Mode::FreeRun && **sg)
+            .map(|(b, _)| scored[b.1].explained.clamp(0.0, 1.0))
+            .fold(0.0, f64::max);
+        let mut findings: Vec<(Finding, usize)> = best
+            .iter()
+            .enumerate()
+            .map(|(j, &(effect, i, variants))| {
+                let s = &scored[i];
+                let explained = if effect == Effect::ColouredNoise {
+                    s.explained * (1.0 - det_best)
+                } else {
+                    s.explained
+                };
+                let mut ev = evidence(effect, &free, &one, &base, Some(s));
+                if let Some(e) = &s.error {
+                    ev.push(format!("the refit failed: {e}"));
+                }
+                if let Some(r) = &replication[j] {
+                    ev.push(format!(
+                        "refit on each half of the training data: explains {} of the held-out error (p = {})",
+                        r.iter().map(|x| format!("{:.1} %", 100.0 * x.0)).collect::<Vec<_>>().join(" and "),
+                        r.iter().map(|x| format!("{:.1e}", x.1)).collect::<Vec<_>>().join(", ")
+                    ));
+                }
+                let f = Finding {
+                    effect: effect.name(),
+                    detail: s.cand.detail.clone(),
+                    explained,
+                    residual: mode_name(effect.metric()),
+                    t: s.t,
+                    p_value: s.p_value,
+                    significant: sig[j] && explained >= effects::MIN_EXPLAINED,
+                    replication: replication[j].as_ref().map(|r| r.iter().map(|x| x.0).collect()),
+                    vaf: s.eval.as_ref().map(mean_vaf),
+                    variants,
+                    evidence: ev,
+                };
+                (f, i)
+            })
+            .collect();
+        findings.sort_by(|a, b| {
+            b.0.significant
+                .cmp(&a.0.significant)
+                .then(b.0.explained.total_cmp(&a.0.explained))
+        });
+        let top = findings.first().filter(|f| f.0.significant).map(|f| f.1);
+        let top_finding = findings.first().map(|f| f.0.clone());
+        let variants_scored = scored
+            .iter()
+            .map(|s| VariantScore {
+                effect: s.cand.effect.name(),
+                detail: s.cand.detail.clone(),
+                explained: s.explained,
+                p_value: s.p_value,
+                error: s.error.clone(),
+                seconds: s.seconds,
+            })
+            .collect();
+        steps.push(Step {
+            step: step_no,
+            variants_scored,
+            null_refit_vaf: mean_vaf(&base_eval),
+            null_refit_mse: (base_eval.mse(Mode::FreeRun), base_eval.mse(Mode::Predictor)),
+            variants: tried,
+            findings: findings.into_iter().map(|f| f.0).collect(),
+            not_applicable: na
+                .into_iter()
+                .map(|(e, why)| (e.name().to_string(), why))
+                .collect(),
+        });
+        let Some(i) = top else {
+            stopped = match top_finding {
+                Some(f) => format!(
+                    "nothing explains the residual above the noise threshold (best: {} explains {:.1} % of the held-out {} error, p = {:.2e}; a finding needs >= {:.0} % and p < {:.1e})",
+                    f.effect,
+                    100.0 * f.explained,
+                    f.residual,
+                    f.p_value,
+                    100.0 * effects::MIN_EXPLAINED,
+                    ALPHA / tried.max(1) as f64
+                ),
+                None => "no candidate effect applies to this model".into(),
+            };
+            break;
+        };
+        if !opts.fix {
+            stopped = "diagnosis only (no --fix)".into();
+            break;
+        }
+        let s = scored
+            .into_iter()
+            .nth(i)
+            .expect("index of a scored variant");
+        let (Some(fitted), Some(eval)) = (s.fitted, s.eval) else {
+            stopped = "the best variant has no model".into();
+            break;
+        };
+        let mode = s.cand.effect.metric();
+        let explained = steps
+            .last()
+            .and_then(|st| st.findings.first())
+            .map_or(s.explained, |f| f.explained);
+        applied.push(Applied {
+            step: step_no,
+            effect: s.cand.effect.name(),
+            detail: s.cand.detail.clone(),
+            explained,
+            residual: mode_name(mode),
+            mse_before: if step_no == 1 {
+                before_eval.mse(mode)
+            } else {
+                base_eval.mse(mode)
+            },
+            mse_after: eval.mse(mode),
+            vaf_before: if step_no == 1 {
+                before.vaf_mean
+            } else {
+                mean_vaf(&base_eval)
+            },
+            vaf_after: mean_vaf(&eval),
+        });
+        current = fitted.model.clone();
+        spec = s.cand.spec;
+        base = fitted;
+        if effects::is_arx(&current) {
+            stopped = "the model is now an lpv-arx model (BC-IV path); further candidate refits are implemented for lpv-ss models".into();
+            break;
+        }
+        if step_no == max_steps {
+            stopped = format!("reached --max-steps {max_steps}");
+        }
+    }
+    let (after, after_one_step, after_eval) = if applied.is_empty() {
+        (None, None, None)
+    } else {
+        (
+            Some(score_model(&current, val, Mode::FreeRun).map_err(err)?),
+            Some(score_model(&current, val, Mode::Predictor).map_err(err)?),
+            Some(Eval::new(&current, val)?),
+        )
+    };
+    let report = Report {
+        command: "diagnose",
+        model: String::new(),
+        train: train.source.clone(),
+        val: val.source.clone(),
+        model_summary: report::model_summary(model),
+        before,
+        before_one_step,
+        after,
+        after_one_step,
+        findings: steps.first().map(|s| s.findings.clone()).unwrap_or_default(),
+        applied,
+        steps,
+        stopped,
+        threshold: Threshold {
+            alpha: ALPHA,
+            min_explained: effects::MIN_EXPLAINED,
+            test: "explained >= min_explained and a one-sided t test of the per-batch log ratio of held-out squared errors (20 batches) at level alpha / (variants tried), replicated on each half of the training data (explained > 0, p < 0.05 each)",
+        },
+        residual: Residuals {
+            free_run: free0,
+            one_step: one0,
+        },
+        notes,
+        out: None,
+    };
+    Ok(Outcome {
+        report,
+        singular_values: (sv_first, base.singular_values.clone()),
+        model: current,
+        before_eval,
+        after_eval,
+    })
+}
+
+/// `lpvid diagnose` arguments.
+#[derive(Debug, clap::Args)]
+pub struct DiagnoseArgs {
+    /// Model file (JSON) to diagnose.
+    #[arg(long)]
+    pub model: PathBuf,
+    /// Training data (CSV) the model was (and candidates are) identified on.
+    #[arg(long)]
+    pub train: PathBuf,
+    /// Validation data (CSV): the held-out data every candidate is scored on.
+    #[arg(long)]
+    pub val: PathBuf,
+    /// Add the best effect to the model and refit it with the model's own settings.
+    #[arg(long)]
+    pub fix: bool,
+    /// With --fix: repeat while an effect explains the residual above the noise threshold.
+    #[arg(long, default_value_t = 1, requires = "fix")]
+    pub max_steps: usize,
+    /// With --fix: where to write the fixed model (JSON).
+    #[arg(long, requires = "fix")]
+    pub out: Option<PathBuf>,
+    /// Write the JSON report here.
+    #[arg(long)]
+    pub json: Option<PathBuf>,
+    /// Write SVG pictures here (fit before/after, residual correlations, spectrum, singular
+    /// values).
+    #[arg(long)]
+    pub plots: Option<PathBuf>,
+    /// Worker threads for the candidate refits (0: all cores).
+    #[arg(long, default_value_t = 0)]
+    pub threads: usize,
+}
+
+/// Run `lpvid diagnose`.
+pub fn run_cli(a: &DiagnoseArgs, out: &mut dyn Write) -> Result<(), CliError> {
+    let model = ModelFile::read(&a.model)?;
+    let train = Dataset::read_csv(&a.train)?;
+    let val = Dataset::read_csv(&a.val)?;
+    let opts = Options {
+        fix: a.fix,
+        max_steps: a.max_steps,
+        threads: a.threads,
+    };
+    let mut res = diagnose(&model, &train, &val, &opts)
+        .map_err(|e| CliError::Other(format!("diagnose: {e}")))?;
+    res.report.model = a.model.display().to_string();
+    if let Some(p) = &a.out {
+        if res.report.applied.is_empty() {
+            // nothing to add: the model is written unchanged so that scripts find the file
+            model.write(p)?;
+        } else {
+            res.model.write(p)?;
+        }
+        res.report.out = Some(p.display().to_string());
+    }
+    if let Some(p) = &a.json {
+        let text = serde_json::to_string_pretty(&res.report)
+            .map_err(|e| CliError::Other(format!("cannot encode the report: {e}")))?;
+        crate::data::write_atomic(p, text.as_bytes())?;
+    }
+    let mut written = Vec::new();
+    if let Some(dir) = &a.plots {
+        std::fs::create_dir_all(dir).map_err(|e| {
+            DataError::new(
+                dir.display().to_string(),
+                None,
+                None,
+                format!("cannot create: {e}"),
+            )
+        })?;
+        written = plots::write_all(dir, &res)?;
+    }
+    let text = report::summary(&res.report, &written);
+    out.write_all(text.as_bytes())
+        .map_err(|e| CliError::Other(format!("cannot write output: {e}")))?;
+    Ok(())
+}

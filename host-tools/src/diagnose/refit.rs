@@ -1,0 +1,880 @@
+//! Refitting a model with its own settings (read from its `fit` record) and a structure that
+//! may have grown: more input channels or scheduling basis functions (the signal map), a
+//! larger order or past window, D estimated, an output equation with C^(i), D^(i), an
+//! autoregressive noise model, or the LPV-ARX BC-IV path.
+//!
+//! Every augmentation is written with the model file's own machinery (DESIGN.md section 5):
+//! the refit model is an ordinary `lpv-ss` (or `lpv-arx`) model whose `inputs`, `scheduling`
+//! and `outputs` say what each signal is; its `fit` records how it was made so that it can be
+//! refit again.
+//!
+//! Three steps are not plain LPV-PBSID_opt and are documented in the model's `fit`:
+//! - **constant input channels** (`[]`, an offset): PBSID scales every input by its standard
+//!   deviation and cannot take a constant one, so the varying inputs and the outputs are
+//!   centred, PBSID identifies A, B, K, C, D from them, and the constant channels' columns
+//!   B_c^(i), D_c are then estimated by output-error least squares (the free-run response of
+//!   the model is linear in them for fixed A(mu) and C);
+//! - **scheduled output equation**: with PBSID's state sequence, y_k = sum_i mu_k^(i)
+//!   (C^(i) x_k + D^(i) u_k) + e_k and then x_{k+1} = sum_i mu_k^(i) (A^(i) x_k + B^(i) u_k +
+//!   K^(i) e_k) by least squares (section 4.3 of the kernel paper with mu (x) [x; u] output
+//!   regressors);
+//! - **noise model**: an autoregression per output of the training one-step residual, order by
+//!   BIC, appended as states driven by the innovation (free run unchanged, predictor whitened).
+
+use nalgebra::{DMatrix, DVector};
+use serde_json::{json, Map, Value};
+
+use super::stats::{moments, solve_moments};
+use crate::arx::{self, ArxOptions, Estimator};
+use crate::data::Dataset;
+use crate::lpvss::{scheduled, LpvSs, Signals};
+use crate::model::{describe, Factor, ModelFile, ModelKind, SignalMap};
+use crate::pbsid::{self, Order, PbsidOptions, Reg};
+
+/// How to refit a model: its signal map, the PBSID settings and the extra structure.
+#[derive(Debug, Clone)]
+pub struct Spec {
+    /// Data columns -> model signals.
+    pub signals: SignalMap,
+    /// LPV-PBSID_opt settings.
+    pub opts: PbsidOptions,
+    /// The regularisation as the fit record names it.
+    pub reg_text: String,
+    /// Output equation with C^(i), D^(i).
+    pub scheduled_output: bool,
+    /// Autoregressive noise model (none, on the one-step or on the free-run residual).
+    pub noise: Noise,
+    /// When set, the model is an LPV-ARX model fitted by BC-IV (scheduling-noise path).
+    pub arx: Option<ArxSpec>,
+}
+
+/// The noise model of a [`Spec`].
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Noise {
+    /// The PBSID innovation gain K only.
+    Pbsid,
+    /// K plus an autoregression of the one-step residual (innovation-driven states).
+    Innovation,
+    /// An autoregression of the free-run residual replaces K (output-error plus AR noise,
+    /// a Box-Jenkins-like structure).
+    OutputError,
+}
+
+impl Noise {
+    fn name(self) -> Option<&'static str> {
+        match self {
+            Noise::Pbsid => None,
+            Noise::Innovation => Some("autoregression of the one-step residual per output (order by BIC), driven by the innovation, on top of K"),
+            Noise::OutputError => Some("autoregression of the free-run residual per output (order by BIC), replacing K (output error + AR noise)"),
+        }
+    }
+}
+
+/// The LPV-ARX (BC-IV) settings of a [`Spec`].
+#[derive(Debug, Clone)]
+pub struct ArxSpec {
+    /// Output lags.
+    pub na: usize,
+    /// Input lags 0..=nb.
+    pub nb: usize,
+    /// Polynomial degree of the scheduling basis.
+    pub ng: usize,
+    /// The raw scheduling signals the basis is a polynomial of.
+    pub sched_signals: Vec<Vec<Factor>>,
+    /// Fraction of the training record (its end) used as calibration data.
+    pub calib_fraction: f64,
+    /// sigma_eta: None = chosen on the calibration data (the paper's grid), Some = given
+    /// (with noise ratios per scheduling signal).
+    pub sigma: Option<(f64, Vec<f64>)>,
+}
+
+/// A refit model and what the fit reports.
+#[derive(Debug, Clone)]
+pub struct Fitted {
+    /// The model, with its `fit` record.
+    pub model: ModelFile,
+    /// Singular values of Gamma K Z (PBSID), empty for LPV-ARX.
+    pub singular_values: Vec<f64>,
+    /// Model order (states; ARX: na).
+    pub order: usize,
+    /// AR orders of the noise model per output (empty without one).
+    pub noise_orders: Vec<usize>,
+    /// sigma_eta of the BC-IV fit.
+    pub sigma_p: Option<f64>,
+}
+
+fn get_usize(fit: &Value, key: &str) -> Option<usize> {
+    fit.get(key).and_then(Value::as_u64).map(|v| v as usize)
+}
+
+impl Spec {
+    /// The refit settings of a model file: its signals and the settings of its `fit`
+    /// record. Missing settings get the `lpvid pbsid` defaults and a note saying so.
+    pub fn from_model(model: &ModelFile, notes: &mut Vec<String>) -> Result<Spec, String> {
+        let fit = &model.fit;
+        match &model.kind {
+            ModelKind::Arx(m) => {
+                let ng = get_usize(fit, "ng").unwrap_or(1);
+                let sched_signals = match fit.get("scheduling_signals") {
+                    Some(v) => serde_json::from_value::<Vec<Vec<Factor>>>(v.clone())
+                        .map_err(|e| format!("fit.scheduling_signals: {e}"))?,
+                    None => {
+                        let plain: Vec<Vec<Factor>> = model
+                            .signals
+                            .scheduling
+                            .iter()
+                            .filter(|p| p.len() == 1 && p[0].pow == 1 && p[0].func.is_none())
+                            .cloned()
+                            .collect();
+                        notes.push(format!(
+                            "the lpv-arx model's fit record does not list its scheduling signals; refits use {} with degree {ng}",
+                            plain.iter().map(|p| describe(p)).collect::<Vec<_>>().join(", ")
+                        ));
+                        plain
+                    }
+                };
+                let spec = Spec {
+                    signals: model.signals.clone(),
+                    opts: PbsidOptions::new(m.na.max(1)),
+                    reg_text: "none".into(),
+                    scheduled_output: false,
+                    noise: Noise::Pbsid,
+                    arx: Some(ArxSpec {
+                        na: m.na,
+                        nb: m.nb,
+                        ng,
+                        sched_signals,
+                        calib_fraction: fit
+                            .get("calibration_fraction")
+                            .and_then(Value::as_f64)
+                            .unwrap_or(0.25),
+                        sigma: fit
+                            .get("sigma_p")
+                            .and_then(Value::as_f64)
+                            .filter(|_| {
+                                fit.get("sigma_rule").and_then(Value::as_str) == Some("fixed")
+                            })
+                            .map(|v| (v, vec![])),
+                    }),
+                };
+                Ok(spec)
+            }
+            ModelKind::Ss(ss) => {
+                let past = match get_usize(fit, "past") {
+                    Some(p) if p > 0 => p,
+                    _ => {
+                        let p = ss.n().max(3);
+                        notes.push(format!(
+                            "the model's fit record has no past window; refits use p = {p}"
+                        ));
+                        p
+                    }
+                };
+                let mut opts = PbsidOptions::new(past);
+                opts.future = get_usize(fit, "future").filter(|&f| f > 0 && f <= past);
+                opts.order = match fit.get("order_rule") {
+                    Some(Value::String(s)) => s.parse::<Order>().unwrap_or(Order::Auto),
+                    _ => match get_usize(fit, "order") {
+                        Some(n) if n > 0 => Order::Fixed(n),
+                        _ => {
+                            notes.push(format!(
+                                "the model's fit record has no order rule; refits keep its order {}",
+                                ss.n()
+                            ));
+                            Order::Fixed(ss.n())
+                        }
+                    },
+                };
+                let reg_text = match fit.get("reg") {
+                    Some(Value::String(s)) if s.parse::<Reg>().is_ok() => s.clone(),
+                    _ => {
+                        notes.push(
+                            "the model's fit record names no regularisation; refits use tikhonov-gcv"
+                                .into(),
+                        );
+                        "tikhonov-gcv".to_string()
+                    }
+                };
+                opts.reg = reg_text.parse::<Reg>().unwrap_or(Reg::TikhonovGcv);
+                opts.feedthrough = fit
+                    .get("feedthrough")
+                    .and_then(Value::as_bool)
+                    .unwrap_or_else(|| ss.d.iter().any(|d| d.amax() > 0.0));
+                if let Some(w) = fit.get("sched_weight").and_then(Value::as_f64) {
+                    if w > 0.0 && w.is_finite() {
+                        opts.sched_weight = w;
+                    }
+                }
+                if let Some(m) = get_usize(fit, "max_order") {
+                    opts.max_order = m.max(1);
+                }
+                Ok(Spec {
+                    signals: model.signals.clone(),
+                    opts,
+                    reg_text,
+                    scheduled_output: ss.c.len() > 1
+                        || fit.get("output_equation").and_then(Value::as_str) == Some("scheduled"),
+                    noise: match fit
+                        .get("noise_model")
+                        .and_then(|v| v.get("residual"))
+                        .and_then(Value::as_str)
+                    {
+                        Some("one-step") => Noise::Innovation,
+                        Some("free-run") => Noise::OutputError,
+                        _ => Noise::Pbsid,
+                    },
+                    arx: None,
+                })
+            }
+        }
+    }
+}
+
+/// The order rule as the fit record writes it.
+pub fn order_rule(o: Order) -> String {
+    match o {
+        Order::Auto => "auto".into(),
+        Order::Fixed(n) => n.to_string(),
+    }
+}
+
+/// Is input column j constant on the training data?
+fn constant_column(u: &DMatrix<f64>, j: usize) -> bool {
+    let c = u.column(j);
+    let first = c[0];
+    c.iter()
+        .all(|v| (v - first).abs() <= 1e-12 * first.abs().max(1e-300))
+}
+
+fn select_columns(m: &DMatrix<f64>, cols: &[usize]) -> DMatrix<f64> {
+    DMatrix::from_fn(m.nrows(), cols.len(), |i, j| m[(i, cols[j])])
+}
+
+/// Refit `spec` on the training data; `base_fit` is the `fit` record to extend.
+pub fn fit_spec(spec: &Spec, train: &Dataset, base_fit: &Value) -> Result<Fitted, String> {
+    if let Some(a) = &spec.arx {
+        return fit_arx(spec, a, train, base_fit);
+    }
+    let sig = spec.signals.evaluate(train).map_err(|e| e.to_string())?;
+    let r = sig.u.ncols();
+    let (const_idx, var_idx): (Vec<usize>, Vec<usize>) =
+        (0..r).partition(|&j| constant_column(&sig.u, j));
+    if var_idx.is_empty() {
+        return Err("the model has no input that varies on the training data".into());
+    }
+    let centre = !const_idx.is_empty();
+    let mut sub = Signals {
+        u: select_columns(&sig.u, &var_idx),
+        y: sig.y.clone(),
+        p: sig.p.clone(),
+    };
+    if centre {
+        for m in [&mut sub.u, &mut sub.y] {
+            for j in 0..m.ncols() {
+                let mu = m.column(j).mean();
+                m.column_mut(j).add_scalar_mut(-mu);
+            }
+        }
+    }
+    let mut f = pbsid::fit(&sub, &spec.opts).map_err(|e| e.to_string())?;
+    let mut ss = f.model.clone();
+    let mut output_eq = "constant";
+    if spec.scheduled_output && sub.p.ncols() > 0 {
+        let (states, sv, order) = scheduled_states(&sub, &f.scaling, &spec.opts, f.order)?;
+        ss = realize_scheduled(&sub, &states, spec.opts.past, spec.opts.feedthrough)?;
+        f.singular_values = sv;
+        f.order = order;
+        f.order_reason = format!(
+            "{}; states from the scheduled-output Gamma K Z",
+            f.order_reason
+        );
+        output_eq = "scheduled";
+    }
+    if centre {
+        ss = add_constant_channels(&ss, &sig, &var_idx, &const_idx)?;
+    }
+    let mut noise_orders = Vec::new();
+    if spec.noise != Noise::Pbsid {
+        let (aug, orders) = add_noise_model(&ss, &sig, spec.noise)?;
+        ss = aug;
+        noise_orders = orders;
+    }
+    let mut rec = match base_fit {
+        Value::Object(m) => m.clone(),
+        _ => Map::new(),
+    };
+    let o = &spec.opts;
+    let updates = json!({
+        "method": "lpv-pbsid-opt",
+        "past": o.past,
+        "future": o.future.unwrap_or(o.past),
+        "order": f.order,
+        "order_rule": order_rule(o.order),
+        "order_reason": f.order_reason,
+        "max_order": o.max_order,
+        "reg": spec.reg_text,
+        "lambda": f.lambda,
+        "effective_parameters": f.dof,
+        "solver": f.solver.name(),
+        "solver_reason": f.solver_reason,
+        "feedthrough": o.feedthrough,
+        "sched_weight": o.sched_weight,
+        "regressors": f.q,
+        "windows": f.windows,
+        "singular_values": f.singular_values,
+        "output_equation": output_eq,
+        "constant_inputs": if centre {
+            Value::from("varying inputs and outputs centred for PBSID; constant channels' B^(i), D by output-error least squares given A(mu), C")
+        } else {
+            Value::Null
+        },
+        "noise_model": match spec.noise.name() {
+            Some(kind) => json!({
+                "kind": kind,
+                "residual": if spec.noise == Noise::Innovation { "one-step" } else { "free-run" },
+                "ar_orders": noise_orders,
+            }),
+            None => Value::Null,
+        },
+        "train_rows": train.len(),
+    });
+    if let Value::Object(u) = updates {
+        for (k, v) in u {
+            rec.insert(k, v);
+        }
+    }
+    rec.remove("train");
+    rec.insert(
+        "train".into(),
+        json!({"file": train.source, "rows": train.len()}),
+    );
+    let model = ModelFile {
+        kind: ModelKind::Ss(ss),
+        signals: spec.signals.clone(),
+        fit: Value::Object(rec),
+    };
+    Ok(Fitted {
+        model,
+        singular_values: f.singular_values,
+        order: f.order,
+        noise_orders,
+        sigma_p: None,
+    })
+}
+
+/// Rows [mu (x) a] for a vector `a` and mu = [1, p].
+fn kron_mu(mu: &DVector<f64>, a: &[f64], out: &mut [f64]) {
+    let w = a.len();
+    for (i, m) in mu.iter().enumerate() {
+        for (o, v) in out[i * w..(i + 1) * w].iter_mut().zip(a) {
+            *o = m * v;
+        }
+    }
+}
+
+/// State sequence for a scheduled output equation (an extension of LPV-PBSID_opt): with a
+/// constant K the predictor state is still x_{k+p} = K^p z_k, and y_{k+p} = sum_i
+/// mu_{k+p}^(i) C^(i) K^p z_k + D(mu) u_{k+p}, so regression (13) takes mu_{k+p} (x) z_k as
+/// regressors. Each block C^(i) K^p gives Gamma^f K^p by the block-shift of eq. (14)
+/// ([`pbsid::gamma_k`]); the stacked blocks' Gamma K Z is decomposed as in eq. (15) and the
+/// states are x = U_n^T Gamma K z (eq. (16)). Same internal scaling as the plain fit.
+/// Returns (states for windows 0..=N-p, singular values, order).
+pub fn scheduled_states(
+    sig: &Signals,
+    sc: &pbsid::Scaling,
+    opts: &PbsidOptions,
+    plain_order: usize,
+) -> Result<(DMatrix<f64>, Vec<f64>, usize), String> {
+    use lpvid::window::write_pbsid_regressor;
+    use lpvid::{PbsidDims, Samples, Slab};
+    let (big_n, r, l, s) = (sig.len(), sig.u.ncols(), sig.y.ncols(), sig.p.ncols());
+    let m = s + 1;
+    let past = opts.past;
+    let dims = PbsidDims::new(r, l, s, past).map_err(|e| e.to_string())?;
+    let q = dims.q().map_err(|e| e.to_string())?;
+    let w = r + l + m;
+    let mut rows = vec![0.0; big_n * w];
+    for k in 0..big_n {
+        let row = &mut rows[k * w..(k + 1) * w];
+        for j in 0..r {
+            row[j] = sig.u[(k, j)] / sc.u[j];
+        }
+        for j in 0..l {
+            row[r + j] = sig.y[(k, j)] / sc.y[j];
+        }
+        row[r + l] = 1.0;
+        for j in 0..s {
+            row[r + l + 1 + j] = (sig.p[(k, j)] - sc.p_center[j]) / sc.p_scale[j];
+        }
+    }
+    let slab = Slab::new(&rows, r, l, m).map_err(|e| e.to_string())?;
+    let windows = big_n - past;
+    let r_ft = if opts.feedthrough { r } else { 0 };
+    let nreg = m * (q + r_ft);
+    if nreg > 4000 {
+        return Err(format!(
+            "the scheduled-output regression has {nreg} regressors: too many for this past window"
+        ));
+    }
+    let mut z = vec![0.0; q];
+    let mut zu = vec![0.0; q + r_ft];
+    let (s_all, scale) = moments(windows, nreg + l, |k, row| {
+        write_pbsid_regressor(&dims, &slab, k, &mut z);
+        zu[..q].copy_from_slice(&z);
+        zu[q..].copy_from_slice(&slab.u(k + past)[..r_ft]);
+        kron_mu(
+            &DVector::from_column_slice(slab.mu(k + past)),
+            &zu,
+            &mut row[..nreg],
+        );
+        row[nreg..].copy_from_slice(slab.y(k + past));
+    })?;
+    // ridge by generalised cross-validation on the scaled moments
+    let theta = ridge_gcv(&s_all, &scale, nreg, l, windows)?;
+    let f = opts.future.unwrap_or(past).clamp(1, past);
+    let mut g = DMatrix::zeros(m * f * l, q);
+    for i in 0..m {
+        let ck = theta.columns(i * (q + r_ft), q).into_owned();
+        let gk = pbsid::gamma_k(&dims, f, &ck);
+        g.view_mut((i * f * l, 0), (f * l, q)).copy_from(&gk);
+    }
+    // Gamma K S_zz (Gamma K)^T with S_zz the second moments of z (block i = 0 of the
+    // regressors is mu^(1) z = z), in raw units
+    let szz = DMatrix::from_fn(q, q, |a, b| s_all[(a, b)] / (scale[a] * scale[b]));
+    let wmat = &g * szz * g.transpose();
+    let (vals, vecs) = crate::linalg::sym_eig(&wmat)?;
+    let sv: Vec<f64> = vals.iter().map(|v| v.max(0.0).sqrt()).collect();
+    // the order of the plain fit (given, or chosen from its singular values): the stacked
+    // blocks have no cleaner gap than the plain Gamma K Z
+    let order = plain_order.min(sv.len()).max(1);
+    let t = vecs.columns(0, order).transpose() * &g;
+    let mut states = DMatrix::zeros(order, windows + 1);
+    for k in 0..=windows {
+        write_pbsid_regressor(&dims, &slab, k, &mut z);
+        states.set_column(k, &(&t * DVector::from_column_slice(&z)));
+    }
+    Ok((states, sv, order))
+}
+
+/// Ridge regression of targets (the last `ntgt` columns of the scaled moments) on the first
+/// `nreg`, the ridge parameter chosen by generalised cross-validation (summed over targets),
+/// returned in raw units (ntgt x nreg).
+fn ridge_gcv(
+    s_all: &DMatrix<f64>,
+    scale: &[f64],
+    nreg: usize,
+    ntgt: usize,
+    rows: usize,
+) -> Result<DMatrix<f64>, String> {
+    let sff = s_all.view((0, 0), (nreg, nreg)).into_owned();
+    let sfy = s_all.view((0, nreg), (nreg, ntgt)).into_owned();
+    let (vals, vecs) = crate::linalg::sym_eig(&sff)?;
+    let b = vecs.transpose() * &sfy;
+    let total: f64 = (0..ntgt).map(|j| s_all[(nreg + j, nreg + j)]).sum();
+    let vmax = vals.first().copied().unwrap_or(0.0).max(1e-300);
+    let cut = vmax * 1e-12;
+    let energy: Vec<f64> = (0..nreg)
+        .map(|i| {
+            if vals[i] > cut {
+                b.row(i).norm_squared() / vals[i]
+            } else {
+                0.0
+            }
+        })
+        .collect();
+    let explained: f64 = energy.iter().sum();
+    let gcv = |lam: f64| {
+        let mut rss = (total - explained).max(0.0);
+        let mut dof = 0.0;
+        for (&v, &c) in vals.iter().zip(&energy) {
+            if v <= cut {
+                continue;
+            }
+            let g = lam / (v + lam);
+            rss += c * g * g;
+            dof += 1.0 - g;
+        }
+        let deficit = rows as f64 - dof;
+        if deficit <= 0.0 {
+            f64::INFINITY
+        } else {
+            rows as f64 * rss / (deficit * deficit)
+        }
+    };
+    let mut best = (f64::INFINITY, 0.0);
+    let mut e = -12.0;
+    while e <= 1.0 {
+        let lam = vmax * 10f64.powf(e);
+        let v = gcv(lam);
+        if v < best.0 {
+            best = (v, lam);
+        }
+        e += 0.25;
+    }
+    let lam = best.1;
+    let mut sb = b;
+    for (i, &v) in vals.iter().enumerate() {
+        let f = if v > cut { 1.0 / (v + lam) } else { 0.0 };
+        sb.row_mut(i).scale_mut(f);
+    }
+    let xs = (vecs * sb).transpose(); // ntgt x nreg, scaled units
+    Ok(DMatrix::from_fn(ntgt, nreg, |i, j| {
+        xs[(i, j)] * scale[j] / scale[nreg + i]
+    }))
+}
+
+/// Realization with a scheduled output equation from PBSID's state sequence (`states`
+/// column k = x_{p+k}) on the signals the PBSID fit saw.
+pub fn realize_scheduled(
+    sig: &Signals,
+    states: &DMatrix<f64>,
+    past: usize,
+    feedthrough: bool,
+) -> Result<LpvSs, String> {
+    let (r, l, m) = (sig.u.ncols(), sig.y.ncols(), sig.p.ncols() + 1);
+    let n = states.nrows();
+    let nb = states.ncols() - 1;
+    let r_ft = if feedthrough { r } else { 0 };
+    let w1 = n + r_ft;
+    let mut a = vec![0.0; w1];
+    let (th, _) = super::stats::lstsq(nb, m * w1, l, |k, row| {
+        a[..n].copy_from_slice(states.column(k).as_slice());
+        for j in 0..r_ft {
+            a[n + j] = sig.u[(k + past, j)];
+        }
+        kron_mu(&sig.mu(k + past), &a, &mut row[..m * w1]);
+        for j in 0..l {
+            row[m * w1 + j] = sig.y[(k + past, j)];
+        }
+    })?;
+    let c: Vec<DMatrix<f64>> = (0..m).map(|i| th.columns(i * w1, n).into_owned()).collect();
+    let d: Vec<DMatrix<f64>> = (0..m)
+        .map(|i| {
+            if feedthrough {
+                th.columns(i * w1 + n, r).into_owned()
+            } else {
+                DMatrix::zeros(l, r)
+            }
+        })
+        .collect();
+    let w2 = n + r + l;
+    let mut xi = vec![0.0; w2];
+    let (th2, _) = super::stats::lstsq(nb, m * w2, n, |k, row| {
+        let mu = sig.mu(k + past);
+        let x = states.column(k);
+        let u = sig.u.row(k + past).transpose();
+        let e = sig.y.row(k + past).transpose() - scheduled(&c, &mu) * x - scheduled(&d, &mu) * &u;
+        xi[..n].copy_from_slice(x.as_slice());
+        xi[n..n + r].copy_from_slice(u.as_slice());
+        xi[n + r..].copy_from_slice(e.as_slice());
+        kron_mu(&mu, &xi, &mut row[..m * w2]);
+        row[m * w2..].copy_from_slice(states.column(k + 1).as_slice());
+    })?;
+    let mut ss = LpvSs {
+        a: vec![],
+        b: vec![],
+        k: vec![],
+        c,
+        d,
+    };
+    for i in 0..m {
+        let o = i * w2;
+        ss.a.push(th2.columns(o, n).into_owned());
+        ss.b.push(th2.columns(o + n, r).into_owned());
+        ss.k.push(th2.columns(o + n + r, l).into_owned());
+    }
+    Ok(ss)
+}
+
+/// Add the constant input channels `const_idx` (of the full input list of `sig`) to a model
+/// identified on the varying inputs `var_idx`: B_c^(i) and D_c by output-error least squares.
+fn add_constant_channels(
+    ss: &LpvSs,
+    sig: &Signals,
+    var_idx: &[usize],
+    const_idx: &[usize],
+) -> Result<LpvSs, String> {
+    let (n, l, m) = (ss.n(), ss.l(), ss.m());
+    let big_n = sig.len();
+    let r = var_idx.len() + const_idx.len();
+    let var_sig = Signals {
+        u: select_columns(&sig.u, var_idx),
+        y: sig.y.clone(),
+        p: sig.p.clone(),
+    };
+    let y0 = ss.simulate(&var_sig, None);
+    let md = ss.d.len();
+    // one response (N x l) per parameter: B_c^(i)[a] then D_c^(i)[j]
+    let mut responses: Vec<DMatrix<f64>> = Vec::new();
+    for &c in const_idx {
+        let cu = DMatrix::from_fn(big_n, 1, |k, _| sig.u[(k, c)]);
+        let one = Signals {
+            u: cu.clone(),
+            y: sig.y.clone(),
+            p: sig.p.clone(),
+        };
+        for i in 0..m {
+            for a in 0..n {
+                let mut b = vec![DMatrix::zeros(n, 1); m];
+                b[i][(a, 0)] = 1.0;
+                let unit = LpvSs {
+                    a: ss.a.clone(),
+                    b,
+                    k: vec![DMatrix::zeros(n, l); m],
+                    c: ss.c.clone(),
+                    d: vec![DMatrix::zeros(l, 1)],
+                };
+                responses.push(unit.simulate(&one, None));
+            }
+        }
+        for i in 0..md {
+            for j in 0..l {
+                let mut resp = DMatrix::zeros(big_n, l);
+                for k in 0..big_n {
+                    let w = if md == 1 { 1.0 } else { sig.mu(k)[i] };
+                    resp[(k, j)] = w * cu[(k, 0)];
+                }
+                responses.push(resp);
+            }
+        }
+    }
+    let np = responses.len();
+    let (theta, _) = super::stats::lstsq(big_n * l, np, 1, |row_i, buf| {
+        let (k, j) = (row_i / l, row_i % l);
+        for (b, resp) in buf.iter_mut().zip(&responses) {
+            *b = resp[(k, j)];
+        }
+        buf[np] = sig.y[(k, j)] - y0[(k, j)];
+    })?;
+    if theta.iter().any(|v| !v.is_finite()) {
+        return Err("constant-channel least squares failed (non-finite coefficients)".into());
+    }
+    let mut b: Vec<DMatrix<f64>> = vec![DMatrix::zeros(n, r); m];
+    let mut d: Vec<DMatrix<f64>> = vec![DMatrix::zeros(l, r); md];
+    for i in 0..m {
+        for (jj, &j) in var_idx.iter().enumerate() {
+            b[i].set_column(j, &ss.b[i].column(jj));
+        }
+    }
+    for i in 0..md {
+        for (jj, &j) in var_idx.iter().enumerate() {
+            d[i].set_column(j, &ss.d[i].column(jj));
+        }
+    }
+    let mut t = 0;
+    for &c in const_idx {
+        for bi in b.iter_mut() {
+            for a in 0..n {
+                bi[(a, c)] = theta[(0, t)];
+                t += 1;
+            }
+        }
+        for di in d.iter_mut() {
+            for j in 0..l {
+                di[(j, c)] = theta[(0, t)];
+                t += 1;
+            }
+        }
+    }
+    Ok(LpvSs {
+        a: ss.a.clone(),
+        b,
+        k: ss.k.clone(),
+        c: ss.c.clone(),
+        d,
+    })
+}
+
+/// Largest AR order tried by the noise model.
+pub const MAX_AR_ORDER: usize = 20;
+
+/// Append an AR noise model per output of the training one-step residual (order by BIC, 0
+/// allowed) as innovation-driven states. Returns the model and the orders.
+fn add_noise_model(ss: &LpvSs, sig: &Signals, kind: Noise) -> Result<(LpvSs, Vec<usize>), String> {
+    let (n, l, m) = (ss.n(), ss.l(), ss.m());
+    let big_n = sig.len();
+    let eps = match kind {
+        Noise::OutputError => &sig.y - ss.simulate(sig, None),
+        _ => &sig.y - ss.predict(sig),
+    };
+    if eps.iter().any(|v| !v.is_finite()) {
+        return Err("the model diverges on the training data".into());
+    }
+    // output error: the AR model of v = y - G u replaces K
+    let kk: Vec<DMatrix<f64>> = match kind {
+        Noise::OutputError => vec![DMatrix::zeros(n, l); m],
+        _ => ss.k.clone(),
+    };
+    let qmax = MAX_AR_ORDER.min(big_n / 50).max(1);
+    let mut coefs: Vec<Vec<f64>> = Vec::new();
+    for j in 0..l {
+        let e: Vec<f64> = eps.column(j).iter().copied().collect();
+        let rows = big_n - qmax;
+        let (s, scale) = moments(rows, qmax + 1, |k, row| {
+            let t = k + qmax;
+            for (i, v) in row[..qmax].iter_mut().enumerate() {
+                *v = e[t - 1 - i];
+            }
+            row[qmax] = e[t];
+        })?;
+        let nf = rows as f64;
+        let mut best = (f64::INFINITY, Vec::new());
+        for q in 0..=qmax {
+            let regs: Vec<usize> = (0..q).collect();
+            let (x, rss) = solve_moments(&s, &scale, &regs, &[qmax])?;
+            let bic = nf * (rss[0] / nf).max(1e-300).ln() + q as f64 * nf.ln();
+            if bic < best.0 {
+                best = (bic, x.row(0).iter().copied().collect());
+            }
+        }
+        coefs.push(best.1);
+    }
+    let orders: Vec<usize> = coefs.iter().map(Vec::len).collect();
+    let qn: usize = orders.iter().sum();
+    if qn == 0 {
+        let mut out = ss.clone();
+        out.k = kk;
+        return Ok((out, orders));
+    }
+    // Ca (l x Q): row j holds a_j in block j; E1 (Q x l); shift Sh (Q x Q)
+    let mut ca = DMatrix::zeros(l, qn);
+    let mut e1 = DMatrix::zeros(qn, l);
+    let mut sh = DMatrix::zeros(qn, qn);
+    let mut off = 0;
+    for (j, a) in coefs.iter().enumerate() {
+        for (i, v) in a.iter().enumerate() {
+            ca[(j, off + i)] = *v;
+            if i > 0 {
+                sh[(off + i, off + i - 1)] = 1.0;
+            }
+        }
+        if !a.is_empty() {
+            e1[(off, j)] = 1.0;
+        }
+        off += a.len();
+    }
+    let nn = n + qn;
+    let r = ss.r();
+    let mut out = LpvSs {
+        a: vec![],
+        b: vec![],
+        k: vec![],
+        c: vec![],
+        d: ss.d.clone(),
+    };
+    for i in 0..m {
+        let mut a = DMatrix::zeros(nn, nn);
+        a.view_mut((0, 0), (n, n)).copy_from(&ss.a[i]);
+        a.view_mut((0, n), (n, qn)).copy_from(&(&kk[i] * &ca));
+        if i == 0 {
+            a.view_mut((n, n), (qn, qn)).copy_from(&(&sh + &e1 * &ca));
+        }
+        out.a.push(a);
+        let mut b = DMatrix::zeros(nn, r);
+        b.view_mut((0, 0), (n, r)).copy_from(&ss.b[i]);
+        out.b.push(b);
+        let mut k = DMatrix::zeros(nn, l);
+        k.view_mut((0, 0), (n, l)).copy_from(&kk[i]);
+        if i == 0 {
+            k.view_mut((n, 0), (qn, l)).copy_from(&e1);
+        }
+        out.k.push(k);
+    }
+    for (i, c) in ss.c.iter().enumerate() {
+        let mut cc = DMatrix::zeros(l, nn);
+        cc.view_mut((0, 0), (l, n)).copy_from(c);
+        if i == 0 {
+            cc.view_mut((0, n), (l, qn)).copy_from(&ca);
+        }
+        out.c.push(cc);
+    }
+    Ok((out, orders))
+}
+
+/// The LPV-ARX path: BC-IV(-LASSO) with sigma_eta and lambda chosen on the end of the
+/// training record (calibration data), as `lpvid arx --estimator bciv`.
+fn fit_arx(spec: &Spec, a: &ArxSpec, train: &Dataset, base_fit: &Value) -> Result<Fitted, String> {
+    if spec.signals.outputs.len() != 1 {
+        return Err("LPV-ARX models have exactly one output".into());
+    }
+    let eval = |list: &[Vec<Factor>], role: &str| -> Result<DMatrix<f64>, String> {
+        let mut m = DMatrix::zeros(train.len(), list.len());
+        for (j, prod) in list.iter().enumerate() {
+            let v = crate::model::eval_product(prod, train, role).map_err(|e| e.to_string())?;
+            m.set_column(j, &DVector::from_vec(v));
+        }
+        Ok(m)
+    };
+    let sig = Signals {
+        u: eval(&spec.signals.inputs, "input")?,
+        y: eval(&spec.signals.outputs, "output")?,
+        p: eval(&a.sched_signals, "scheduling signal")?,
+    };
+    let big_n = sig.len();
+    let nc = ((big_n as f64) * a.calib_fraction).round() as usize;
+    if nc < 20 || big_n - nc < 20 {
+        return Err("too few samples to split off calibration data for BC-IV".into());
+    }
+    let tr = sig.slice(0, big_n - nc);
+    let cal = sig.slice(big_n - nc, nc);
+    let mut opts = ArxOptions::new(a.na, a.nb, a.ng);
+    opts.estimator = Estimator::Bciv;
+    if let Some((sg, ratios)) = &a.sigma {
+        // sigma given: the full (small) model, no structure selection (the cross-validated
+        // Lasso is what lets the calibration grid tell sigma apart; with sigma known it only
+        // adds the risk of dropping a true coefficient)
+        opts.sigma = arx::SigmaChoice::Fixed(*sg);
+        opts.lambda = arx::LambdaChoice::Fixed(0.0);
+        if ratios.len() == a.sched_signals.len() {
+            opts.noise_ratios = Some(ratios.clone());
+        }
+    }
+    let af = arx::fit(&tr, Some(&cal), &opts).map_err(|e| e.to_string())?;
+    let scheduling = arx::basis_products(&a.sched_signals, a.ng).map_err(|e| e.to_string())?;
+    let signals = SignalMap {
+        inputs: spec.signals.inputs.clone(),
+        scheduling,
+        outputs: spec.signals.outputs.clone(),
+    };
+    let mut rec = match base_fit {
+        Value::Object(m) => m.clone(),
+        _ => Map::new(),
+    };
+    rec.clear();
+    let updates = json!({
+        "method": "lpv-arx",
+        "estimator": "bciv",
+        "na": a.na,
+        "nb": a.nb,
+        "ng": a.ng,
+        "scheduling_signals": a.sched_signals,
+        "sigma_p": af.report.sigma_p,
+        "sigma_rule": if a.sigma.is_some() { "fixed".to_string() } else { af.report.sigma_rule.clone() },
+        "sigma_source": if a.sigma.is_some() {
+            "white-noise floor of the scheduling signal's spectrum (training data)"
+        } else {
+            "calibration grid (BC-IV paper section 5.3)"
+        },
+        "lambda": af.report.lambda,
+        "lambda_rule": af.report.lambda_rule,
+        "support": af.report.support_names,
+        "calibration_fraction": a.calib_fraction,
+        "calibration": format!("the last {nc} samples of the training data"),
+        "train": {"file": train.source, "rows": train.len()},
+        "refit_from": base_fit.get("method").cloned().unwrap_or(Value::Null),
+    });
+    if let Value::Object(u) = updates {
+        rec.extend(u);
+    }
+    Ok(Fitted {
+        model: ModelFile {
+            kind: ModelKind::Arx(af.model),
+            signals,
+            fit: Value::Object(rec),
+        },
+        singular_values: vec![],
+        order: a.na,
+        noise_orders: vec![],
+        sigma_p: Some(af.report.sigma_p),
+    })
+}

@@ -1,0 +1,158 @@
+//! `lpvid diagnose` end to end through the command line: files in, the fixed model, the JSON
+//! report and the SVG pictures out, and the engineer's note on stdout.
+
+mod diagnose_support;
+
+use diagnose_support::{generate, planted};
+use lpvid_host::cli::run;
+use lpvid_host::model::ModelFile;
+use serde_json::Value;
+
+fn lpvid(args: &[&str]) -> Result<String, String> {
+    let mut out = Vec::new();
+    let mut full = vec!["lpvid"];
+    full.extend_from_slice(args);
+    run(full, &mut out).map_err(|e| e.to_string())?;
+    Ok(String::from_utf8(out).unwrap())
+}
+
+#[test]
+fn diagnose_fix_writes_model_report_and_plots() {
+    let (plant, args) = planted("input-delay");
+    let (train, val) = generate(&plant, 7);
+    let dir = tempfile::tempdir().unwrap();
+    let p = |n: &str| dir.path().join(n).display().to_string();
+    train
+        .write_csv(dir.path().join("train.csv").as_path())
+        .unwrap();
+    val.write_csv(dir.path().join("val.csv").as_path()).unwrap();
+    let mut a = vec!["pbsid", "--train"];
+    let tp = p("train.csv");
+    let mp = p("m.json");
+    a.push(&tp);
+    a.extend(args.iter());
+    a.extend(["--out", &mp]);
+    lpvid(&a).unwrap();
+
+    let (vp, m2, rp, plots) = (p("val.csv"), p("m2.json"), p("report.json"), p("plots"));
+    let note = lpvid(&[
+        "diagnose",
+        "--model",
+        &mp,
+        "--train",
+        &tp,
+        "--val",
+        &vp,
+        "--fix",
+        "--max-steps",
+        "3",
+        "--out",
+        &m2,
+        "--json",
+        &rp,
+        "--plots",
+        &plots,
+    ])
+    .unwrap();
+    println!("{note}");
+    assert!(note.contains("what is missing: input-delay"), "{note}");
+    assert!(note.contains("Added: input-delay"), "{note}");
+    assert!(note.contains("After: free-run VAF"), "{note}");
+    assert!(note.contains("Stopped:"), "{note}");
+
+    let fixed = ModelFile::read(std::path::Path::new(&m2)).unwrap();
+    let delayed = fixed
+        .signals
+        .inputs
+        .iter()
+        .flatten()
+        .any(|f| f.col == "u1" && f.delay == 5);
+    assert!(delayed, "{:?}", fixed.signals.inputs);
+    assert_eq!(fixed.fit["method"], "lpv-pbsid-opt");
+
+    let rep: Value = serde_json::from_str(&std::fs::read_to_string(&rp).unwrap()).unwrap();
+    assert_eq!(rep["findings"][0]["effect"], "input-delay");
+    for key in ["effect", "detail", "explained", "evidence"] {
+        assert!(!rep["findings"][0][key].is_null(), "{key}");
+    }
+    assert!(rep["before"]["vaf"][0].as_f64().unwrap() < 50.0);
+    assert!(rep["after"]["vaf"][0].as_f64().unwrap() > 95.0);
+    assert!(rep["after"]["bfr"][0].as_f64().unwrap() > rep["before"]["bfr"][0].as_f64().unwrap());
+    assert_eq!(rep["applied"][0]["effect"], "input-delay");
+    // the loop stops by itself when nothing explains the residual any more
+    let steps = rep["steps"].as_array().unwrap().len();
+    assert!(steps <= 3);
+    assert!(rep["residual"]["free_run"]["whiteness"][0]["ljung_box"]
+        .as_f64()
+        .is_some());
+
+    if let Ok(keep) = std::env::var("DIAG_KEEP_PLOTS") {
+        for e in std::fs::read_dir(dir.path().join("plots")).unwrap() {
+            let e = e.unwrap();
+            std::fs::copy(e.path(), std::path::Path::new(&keep).join(e.file_name())).unwrap();
+        }
+    }
+    for f in [
+        "fit.svg",
+        "autocorrelation.svg",
+        "cross-correlation.svg",
+        "spectrum.svg",
+        "singular-values.svg",
+    ] {
+        let text = std::fs::read_to_string(dir.path().join("plots").join(f)).unwrap();
+        assert!(
+            text.starts_with("<svg") && text.trim_end().ends_with("</svg>"),
+            "{f}"
+        );
+    }
+}
+
+#[test]
+fn diagnose_without_fix_only_reports() {
+    let (plant, args) = planted("output-offset");
+    let (train, val) = generate(&plant, 3);
+    let dir = tempfile::tempdir().unwrap();
+    let p = |n: &str| dir.path().join(n).display().to_string();
+    train.write_csv(dir.path().join("t.csv").as_path()).unwrap();
+    val.write_csv(dir.path().join("v.csv").as_path()).unwrap();
+    let (tp, vp, mp) = (p("t.csv"), p("v.csv"), p("m.json"));
+    let mut a = vec!["pbsid", "--train", &tp];
+    a.extend(args.iter());
+    a.extend(["--out", &mp]);
+    lpvid(&a).unwrap();
+    let note = lpvid(&["diagnose", "--model", &mp, "--train", &tp, "--val", &vp]).unwrap();
+    assert!(note.contains("what is missing: output-offset"), "{note}");
+    assert!(note.contains("diagnosis only"), "{note}");
+    assert!(!note.contains("Added"), "{note}");
+    // --out needs --fix
+    let e = lpvid(&[
+        "diagnose",
+        "--model",
+        &mp,
+        "--train",
+        &tp,
+        "--val",
+        &vp,
+        "--out",
+        &p("x.json"),
+    ])
+    .unwrap_err();
+    assert!(e.contains("--fix"), "{e}");
+    // a missing column names the file
+    let e = lpvid(&[
+        "diagnose",
+        "--model",
+        &mp,
+        "--train",
+        &tp,
+        "--val",
+        &p("nope.csv"),
+    ])
+    .unwrap_err();
+    assert!(e.contains("nope.csv"), "{e}");
+    let help = lpvid(&["diagnose", "--help"]).unwrap();
+    assert!(
+        help.contains("--max-steps") && help.contains("--plots"),
+        "{help}"
+    );
+}
