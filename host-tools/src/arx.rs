@@ -236,9 +236,14 @@ pub struct ArxOptions {
     /// Replace each Lasso solution by the unpenalised refit on its support (section 5.2,
     /// true) or keep the penalised (shrunk) estimate (false).
     pub debias: bool,
-    /// Cross-validation takes the sparsest structure within one standard error of the lowest
-    /// calibration cost (true) or the lowest cost itself (false).
+    /// Cross-validation takes the sparsest structure whose calibration cost exceeds the
+    /// lowest by at most `se_factor` paired jackknife standard errors (true) or the lowest
+    /// cost itself (false). The same rule, with factor 1, picks among the self-consistent
+    /// (structure, sigma) pairs.
     pub one_se: bool,
+    /// Standard errors allowed by the lambda cross-validation (see `one_se`).
+    pub se_factor: f64,
+
     /// Points of the lambda path.
     pub n_lambda: usize,
     /// lambda_min / lambda_max of the path.
@@ -277,13 +282,14 @@ impl ArxOptions {
             adaptive: true,
             debias: true,
             one_se: true,
+            se_factor: 1.0,
             n_lambda: 60,
             lambda_min_ratio: 1e-3,
             max_iter: 10,
             tol: 1e-3,
             refit_all: true,
             precision: Precision::F64,
-            cv_blocks: 10,
+            cv_blocks: 20,
             noise_ratios: None,
         }
     }
@@ -562,10 +568,13 @@ pub enum Instruments<'a> {
 }
 
 /// Accumulate the BC-IV statistics (core, in precision `T`) of one data set in `blocks`
-/// consecutive blocks and convert each to f64 as a device would send it: at a block
-/// boundary the values are read out and the accumulator is reset, its regressor window
-/// kept (so no sample is lost). The sum of the blocks ([`BcivStats::merge`]) is the
-/// statistics of the whole set. The free-run simulation for the instruments runs in `T` too
+/// interleaved blocks (regressor k goes to block k mod `blocks`) and convert each to f64 as
+/// a device would send it. The sum of the blocks ([`BcivStats::merge`]) is the statistics of
+/// the whole set. Interleaving makes the blocks alike (each sees the whole record): their
+/// differences reflect the noise only, not the slow variation of the scheduling, which is
+/// what the jackknife standard errors of [`Blocked`] need. The regressor chi(k) comes from an
+/// [`ArxWindow`] over the measured data and is handed to the core
+/// ([`BcivStats::accumulate`]); the free-run simulation for the instruments runs in `T` too
 /// (core `ArxWindow::simulate_step`), from zero initial conditions, on the measured (noisy)
 /// scheduling, as section 4 asks (the instruments must not depend on the output noise).
 pub fn accumulate_blocks<T: Real>(
@@ -577,47 +586,38 @@ pub fn accumulate_blocks<T: Real>(
 ) -> Result<Vec<Stats>, ArxError> {
     let arx = dims.arx;
     let blocks = blocks.max(1);
-    let mut st: BcivStats<T, Vec<T>, Vec<T>> = BcivStats::new(
-        dims,
-        vec![T::ZERO; dims.storage_len()],
-        vec![T::ZERO; dims.window_len()],
-    )
-    .map_err(|e| core_err("statistics", e))?;
     let rho_t: Vec<T> = rho.iter().map(|v| T::of(*v)).collect();
-    st.set_noise_ratios(&rho_t)
-        .map_err(|e| core_err("noise ratios", e))?;
-    let mut win: ArxWindow<T, Vec<T>> =
-        ArxWindow::new(arx, vec![T::ZERO; arx.window_len()]).map_err(|e| core_err("window", e))?;
+    let mut acc: Vec<BcivStats<T, Vec<T>, Vec<T>>> = Vec::with_capacity(blocks);
+    for _ in 0..blocks {
+        let mut st = BcivStats::new(
+            dims,
+            vec![T::ZERO; dims.storage_len()],
+            vec![T::ZERO; dims.window_len()],
+        )
+        .map_err(|e| core_err("statistics", e))?;
+        st.set_noise_ratios(&rho_t)
+            .map_err(|e| core_err("noise ratios", e))?;
+        acc.push(st);
+    }
+    let new_window = || -> Result<ArxWindow<T, Vec<T>>, ArxError> {
+        ArxWindow::new(arx, vec![T::ZERO; arx.window_len()]).map_err(|e| core_err("window", e))
+    };
+    // measured data (chi) and, for IV, the simulation (zeta)
+    let mut meas = new_window()?;
+    let mut sim = new_window()?;
     let theta_t: Vec<T> = match instr {
         Instruments::Simulated(th) => th.iter().map(|v| T::of(*v)).collect(),
         Instruments::Measured => Vec::new(),
     };
     let ymax = sig.y.iter().fold(0.0f64, |a, v| a.max(v.abs()));
     let bound = 1e6 * (1.0 + ymax);
+    let mut chi = vec![T::ZERO; arx.chi_len()];
     let mut zeta = vec![T::ZERO; arx.chi_len()];
     let (r, s) = (arx.r, arx.s);
     let mut u = vec![T::ZERO; r];
     let mut p = vec![T::ZERO; s];
-    let n = sig.len();
-    let mut out = Vec::with_capacity(blocks);
-    let flush =
-        |st: &mut BcivStats<T, Vec<T>, Vec<T>>, out: &mut Vec<Stats>| -> Result<(), ArxError> {
-            let mut o: Stats = BcivStats::new(
-                dims,
-                vec![0.0; dims.storage_len()],
-                vec![0.0; dims.window_len()],
-            )
-            .map_err(|e| core_err("statistics", e))?;
-            o.set_noise_ratios(rho)
-                .map_err(|e| core_err("noise ratios", e))?;
-            let vals: Vec<f64> = st.values().iter().map(|v| v.to_f64()).collect();
-            o.load(&vals, st.count())
-                .map_err(|e| core_err("statistics", e))?;
-            out.push(o);
-            st.reset();
-            Ok(())
-        };
-    for k in 0..n {
+    let mut count = 0usize;
+    for k in 0..sig.len() {
         for (i, v) in u.iter_mut().enumerate() {
             *v = T::of(sig.u[(k, i)]);
         }
@@ -625,48 +625,60 @@ pub fn accumulate_blocks<T: Real>(
             *v = T::of(sig.p[(k, i)]);
         }
         let y = T::of(sig.y[(k, 0)]);
-        match instr {
-            Instruments::Measured => {
-                win.push(&u, y, &p)
-                    .map_err(|e| core_err(&format!("sample {k}"), e))?;
-                if win.is_ready() {
-                    win.write_chi(&mut zeta)
-                        .map_err(|e| core_err("regressor", e))?;
-                }
-            }
-            Instruments::Simulated(_) => {
-                if k < arx.depth() {
-                    // zero initial condition of the simulation (noise-free instruments)
-                    win.push(&u, T::ZERO, &p)
-                        .map_err(|e| core_err(&format!("sample {k}"), e))?;
-                } else {
-                    let yh = win.simulate_step(&theta_t, &u, &p).map_err(|_| {
-                        ArxError(format!(
-                            "the free-run simulation of the current model diverges at sample {k}: \
-                             no instruments can be built from it"
-                        ))
-                    })?;
-                    if yh.to_f64().abs() > bound {
-                        return err(format!(
-                            "the free-run simulation of the current model diverges at sample {k} \
-                             (|yhat| = {:.3e}): no instruments can be built from it",
-                            yh.to_f64().abs()
-                        ));
-                    }
-                    win.write_chi(&mut zeta)
-                        .map_err(|e| core_err("instrument", e))?;
-                }
-            }
-        }
-        st.update(&zeta, &u, y, &p)
+        meas.push(&u, y, &p)
             .map_err(|e| core_err(&format!("sample {k}"), e))?;
-        // block b ends after sample floor((b + 1) n / blocks) - 1
-        let b = out.len();
-        if b + 1 < blocks && k + 1 == (b + 1) * n / blocks {
-            flush(&mut st, &mut out)?;
+        if let Instruments::Simulated(_) = instr {
+            if k < arx.depth() {
+                // zero initial condition of the simulation (noise-free instruments)
+                sim.push(&u, T::ZERO, &p)
+                    .map_err(|e| core_err(&format!("sample {k}"), e))?;
+            } else {
+                let yh = sim.simulate_step(&theta_t, &u, &p).map_err(|_| {
+                    ArxError(format!(
+                        "the free-run simulation of the current model diverges at sample {k}: \
+                         no instruments can be built from it"
+                    ))
+                })?;
+                if yh.to_f64().abs() > bound {
+                    return err(format!(
+                        "the free-run simulation of the current model diverges at sample {k} \
+                         (|yhat| = {:.3e}): no instruments can be built from it",
+                        yh.to_f64().abs()
+                    ));
+                }
+            }
         }
+        if !meas.is_ready() {
+            continue;
+        }
+        meas.write_chi(&mut chi)
+            .map_err(|e| core_err("regressor", e))?;
+        match instr {
+            Instruments::Measured => zeta.copy_from_slice(&chi),
+            Instruments::Simulated(_) => sim
+                .write_chi(&mut zeta)
+                .map_err(|e| core_err("instrument", e))?,
+        }
+        acc[count % blocks]
+            .accumulate(&zeta, &chi, y, &p)
+            .map_err(|e| core_err(&format!("sample {k}"), e))?;
+        count += 1;
     }
-    flush(&mut st, &mut out)?;
+    let mut out = Vec::with_capacity(blocks);
+    for st in &acc {
+        let mut o: Stats = BcivStats::new(
+            dims,
+            vec![0.0; dims.storage_len()],
+            vec![0.0; dims.window_len()],
+        )
+        .map_err(|e| core_err("statistics", e))?;
+        o.set_noise_ratios(rho)
+            .map_err(|e| core_err("noise ratios", e))?;
+        let vals: Vec<f64> = st.values().iter().map(|v| v.to_f64()).collect();
+        o.load(&vals, st.count())
+            .map_err(|e| core_err("statistics", e))?;
+        out.push(o);
+    }
     Ok(out)
 }
 
@@ -698,16 +710,16 @@ fn total(blocks: &[Stats]) -> Result<Stats, ArxError> {
 /// Calibration statistics: the whole set and its leave-one-block-out versions, for the
 /// cost J_CIV(theta, 0, N_c) and its jackknife standard error.
 #[derive(Debug, Clone)]
-pub struct Calib {
+pub struct Blocked {
     /// Statistics of the whole calibration set.
     pub total: Stats,
     /// Statistics with block b left out (total - block b), one per block (empty for one block).
     loo: Vec<Stats>,
 }
 
-impl Calib {
+impl Blocked {
     /// From block statistics (at least one).
-    pub fn from_blocks(blocks: &[Stats]) -> Result<Calib, ArxError> {
+    pub fn from_blocks(blocks: &[Stats]) -> Result<Blocked, ArxError> {
         let tot = total(blocks)?;
         let mut loo = Vec::new();
         if blocks.len() > 1 {
@@ -724,7 +736,7 @@ impl Calib {
                 loo.push(s);
             }
         }
-        Ok(Calib { total: tot, loo })
+        Ok(Blocked { total: tot, loo })
     }
 
     /// J_CIV(theta, 0, N_c) at sigma^2 (the core's `civ_cost`).
@@ -755,7 +767,7 @@ impl Calib {
     }
 }
 
-impl Calib {
+impl Blocked {
     /// The cost difference d = J(sigma_a, theta_a) - J(sigma_b, theta_b) on the calibration
     /// statistics and its paired block-jackknife standard error (0 with one block): the
     /// noise common to both candidates cancels, so this compares two models far more
@@ -785,7 +797,12 @@ impl Calib {
 /// The one-standard-error rule over candidates (sigma, theta, cost): among those whose cost
 /// exceeds the lowest by at most one paired jackknife standard error of the difference, the
 /// sparsest, then the cheapest. With `one_se` false: the cheapest.
-fn one_se_pick(cal: &Calib, cands: &[Choice], one_se: bool) -> Result<Option<usize>, ArxError> {
+fn one_se_pick(
+    cal: &Blocked,
+    cands: &[Choice],
+    one_se: bool,
+    factor: f64,
+) -> Result<Option<usize>, ArxError> {
     let Some(imin) = (0..cands.len()).min_by(|&a, &b| cands[a].cost.total_cmp(&cands[b].cost))
     else {
         return Ok(None);
@@ -800,7 +817,7 @@ fn one_se_pick(cal: &Calib, cands: &[Choice], one_se: bool) -> Result<Option<usi
             continue;
         }
         let (d, se) = cal.diff_se((c.sigma * c.sigma, &c.theta), (m.sigma * m.sigma, &m.theta))?;
-        if d > se {
+        if d > factor * se {
             continue;
         }
         let (nc, nb) = (
@@ -857,6 +874,9 @@ fn support_of(theta: &[f64]) -> Vec<usize> {
     (0..theta.len()).filter(|j| theta[*j] != 0.0).collect()
 }
 
+/// A selection: the choice, the sigma curve (sigma, best calibration cost there), the rule.
+type Selection = (Choice, Vec<(f64, f64)>, String);
+
 /// The choice at one sigma.
 #[derive(Debug, Clone)]
 struct Choice {
@@ -864,6 +884,9 @@ struct Choice {
     lambda: Option<f64>,
     theta: Vec<f64>,
     cost: f64,
+    /// The lowest-cost support of the cross-validation when the one-standard-error rule
+    /// picked another one.
+    alt_support: Option<Vec<usize>>,
 }
 
 /// Select at one sigma: lambda fixed, none (full model), or cross-validated on `cal`:
@@ -872,17 +895,17 @@ struct Choice {
 /// standard error of the lowest cost is taken (the one-standard-error rule of
 /// cross-validation), ties to the lower cost.
 fn select_at(
-    train: &Stats,
-    cal: &Calib,
+    train: &Blocked,
+    cal: &Blocked,
     sigma: f64,
     opts: &ArxOptions,
 ) -> Result<Option<Choice>, ArxError> {
     let s2 = sigma * sigma;
-    let n = normal(train, s2)?;
+    let n = normal(&train.total, s2)?;
     let nt = n.nt;
     let full = refit_on(&n, None);
     let lam = match opts.lambda {
-        LambdaChoice::Fixed(v) if v == 0.0 => {
+        LambdaChoice::Fixed(0.0) => {
             return match full {
                 Some(th) => {
                     let cost = cal.cost(s2, &th)?;
@@ -891,6 +914,7 @@ fn select_at(
                         lambda: None,
                         theta: th,
                         cost,
+                        alt_support: None,
                     }))
                 }
                 None => Ok(None),
@@ -933,6 +957,7 @@ fn select_at(
                 lambda: Some(v),
                 theta: th,
                 cost,
+                alt_support: None,
             }))
         }
         LambdaChoice::Cv => {
@@ -957,6 +982,7 @@ fn select_at(
                             lambda: Some(2.0 * fit.lambda),
                             theta: t,
                             cost: c,
+                            alt_support: None,
                         }),
                         Err(e) => {
                             failure = Some(e);
@@ -971,7 +997,16 @@ fn select_at(
             if let Some(e) = failure {
                 return Err(e);
             }
-            Ok(one_se_pick(cal, &cands, opts.one_se)?.map(|i| cands.swap_remove(i)))
+            let Some(pick) = one_se_pick(cal, &cands, opts.one_se, opts.se_factor)? else {
+                return Ok(None);
+            };
+            let min = one_se_pick(cal, &cands, false, 0.0)?;
+            let alt = min
+                .filter(|&m| m != pick)
+                .map(|m| support_of(&cands[m].theta));
+            let mut c = cands.swap_remove(pick);
+            c.alt_support = alt;
+            Ok(Some(c))
         }
     }
 }
@@ -1052,6 +1087,12 @@ fn sigma_on_support(
     let Some((i, th, c)) = best else {
         return Ok(None);
     };
+    if grid.len() > 2 && i + 1 == grid.len() {
+        // the cost still falls at the largest sigma of the grid: no minimum is bracketed, so
+        // this structure does not determine sigma (seen with spurious structures far from the
+        // truth; a real sigma this large would need a wider --sigma-grid)
+        return Ok(None);
+    }
     let mut out = (grid[i], th, c);
     if refine && grid.len() > 1 {
         let lo = grid[i.saturating_sub(1)];
@@ -1082,11 +1123,11 @@ fn sigma_on_support(
 ///    then golden section);
 /// 3. S is self-consistent when S(sigma_S) = S.
 fn select(
-    train: &Stats,
-    cal: &Calib,
+    train: &Blocked,
+    cal: &Blocked,
     grid: &[f64],
     opts: &ArxOptions,
-) -> Result<(Choice, Vec<(f64, f64)>, String), ArxError> {
+) -> Result<Selection, ArxError> {
     let sigmas: Vec<f64> = match (opts.estimator, opts.sigma) {
         (Estimator::Bciv, SigmaChoice::Auto) => grid.to_vec(),
         (Estimator::Bciv, SigmaChoice::Fixed(s)) => vec![s],
@@ -1099,9 +1140,10 @@ fn select(
         let c = select_at(train, cal, *s, opts)?;
         curve.push((*s, c.as_ref().map_or(f64::INFINITY, |c| c.cost)));
         if let Some(c) = c {
-            let sup = support_of(&c.theta);
-            if !sup.is_empty() && !supports.contains(&sup) {
-                supports.push(sup);
+            for sup in std::iter::once(support_of(&c.theta)).chain(c.alt_support.clone()) {
+                if !sup.is_empty() && !supports.contains(&sup) {
+                    supports.push(sup);
+                }
             }
             if best.as_ref().is_none_or(|b| c.cost < b.cost) {
                 best = Some(c);
@@ -1124,9 +1166,9 @@ fn select(
     // steps 2-3
     let merged;
     let (st_a, st_b) = match opts.sigma_data {
-        SigmaData::Calibration => (train, &cal.total),
+        SigmaData::Calibration => (&train.total, &cal.total),
         SigmaData::All => {
-            let mut m = train.clone();
+            let mut m = train.total.clone();
             m.merge(&cal.total)
                 .map_err(|e| core_err("merging statistics", e))?;
             merged = m;
@@ -1142,17 +1184,22 @@ fn select(
         };
         // the estimate itself: the de-biased refit on the training statistics at sigma_S,
         // scored on the calibration statistics
-        let Some(th) = refit_on(&normal(train, sg * sg)?, Some(sup)) else {
+        let Some(th) = refit_on(&normal(&train.total, sg * sg)?, Some(sup)) else {
             continue;
         };
         let c = cal.cost(sg * sg, &th)?;
         let again = select_at(train, cal, sg, opts)?;
-        let consistent = again.as_ref().is_some_and(|a| support_of(&a.theta) == *sup);
+        // self-consistent: cross-validation at sigma_S selects S, by the one-standard-error
+        // rule or by the lowest cost (the two ends of the usual range)
+        let consistent = again
+            .as_ref()
+            .is_some_and(|a| support_of(&a.theta) == *sup || a.alt_support.as_ref() == Some(sup));
         let cand = Choice {
             sigma: sg,
             lambda: again.as_ref().and_then(|a| a.lambda),
             theta: th,
             cost: c,
+            alt_support: None,
         };
         if fallback.as_ref().is_none_or(|f| c < f.cost) {
             fallback = Some(cand.clone());
@@ -1168,7 +1215,7 @@ fn select(
     };
     // step 4: the sparsest self-consistent pair within one (paired) standard error of the
     // cheapest
-    if let Some(i) = one_se_pick(cal, &consistent_cands, opts.one_se)? {
+    if let Some(i) = one_se_pick(cal, &consistent_cands, opts.one_se, 1.0)? {
         return Ok((
             consistent_cands.swap_remove(i),
             curve,
@@ -1325,11 +1372,11 @@ pub fn fit(
         Precision::F32 => accumulate_blocks::<f32>(sig, bdims, &rho, instr, k),
     };
     let nt = bdims.n_theta();
-    let pass = |instr: Instruments<'_>| -> Result<(Stats, Calib), ArxError> {
-        let t = total(&acc(train, instr, 1)?)?;
+    let pass = |instr: Instruments<'_>| -> Result<(Blocked, Blocked), ArxError> {
+        let t = Blocked::from_blocks(&acc(train, instr, blocks)?)?;
         let c = match calib {
-            Some(c) => Calib::from_blocks(&acc(c, instr, blocks)?)?,
-            None => Calib::from_blocks(std::slice::from_ref(&t))?,
+            Some(c) => Blocked::from_blocks(&acc(c, instr, blocks)?)?,
+            None => Blocked::from_blocks(std::slice::from_ref(&t.total))?,
         };
         Ok((t, c))
     };
@@ -1351,7 +1398,7 @@ pub fn fit(
     }];
     // the instruments of the first IV pass come from the unpenalised LS fit: a sparse LS
     // model may miss dynamics the instruments must carry
-    let mut model = refit_on(&normal(&st_t, 0.0)?, None).unwrap_or(choice.theta.clone());
+    let mut model = refit_on(&normal(&st_t.total, 0.0)?, None).unwrap_or(choice.theta.clone());
     let mut states = vec![(choice, curve, rule, st_t, st_c)];
     let mut iterations = 0;
     let mut converged = opts.estimator == Estimator::Ls;
@@ -1438,7 +1485,7 @@ pub fn fit(
     let mut final_refit = "training";
     if opts.refit_all && calib.is_some() && opts.debias {
         // hyper-parameters fixed: the de-biased refit (section 5.2) on all the data
-        let mut m = st_t.clone();
+        let mut m = st_t.total.clone();
         m.merge(&st_c.total)
             .map_err(|e| core_err("merging statistics", e))?;
         let sup = support_of(&choice.theta);
@@ -1459,6 +1506,7 @@ pub fn fit(
     };
     let s2 = sigma * sigma;
     let train_cost = st_t
+        .total
         .civ_cost(s2, &choice.theta)
         .map_err(|e| core_err("training cost", e))?;
     let calib_cost = match calib {
@@ -1476,11 +1524,11 @@ pub fn fit(
         .collect();
     let lambda_rule = match opts.lambda {
         LambdaChoice::Cv => "cv",
-        LambdaChoice::Fixed(v) if v == 0.0 => "none",
+        LambdaChoice::Fixed(0.0) => "none",
         LambdaChoice::Fixed(_) => "fixed",
     };
     let weights = match (opts.lambda, opts.adaptive) {
-        (LambdaChoice::Fixed(v), _) if v == 0.0 => "none",
+        (LambdaChoice::Fixed(0.0), _) => "none",
         (_, true) => "adaptive (1/|theta_full|, unpenalised estimate at the same sigma)",
         (_, false) => "unit",
     };
@@ -1511,7 +1559,7 @@ pub fn fit(
             Vec::new()
         },
         samples: (
-            st_t.count(),
+            st_t.total.count(),
             if calib.is_some() {
                 st_c.total.count()
             } else {
@@ -1721,7 +1769,12 @@ fn channels(ds: &Dataset) -> [Vec<String>; 3] {
 
 /// Check a data file for an LPV-ARX fit: one output, varying inputs and scheduling, enough
 /// rows. Errors name the file, line and column.
-fn check_dataset(ds: &Dataset, dims: &ArxDims, what: &str) -> Result<(), DataError> {
+fn check_dataset(
+    ds: &Dataset,
+    dims: &ArxDims,
+    what: &str,
+    held_out: bool,
+) -> Result<(), DataError> {
     let [u, y, p] = channels(ds);
     if y.is_empty() {
         return Err(DataError::new(
@@ -1750,7 +1803,9 @@ fn check_dataset(ds: &Dataset, dims: &ArxDims, what: &str) -> Result<(), DataErr
         ds.check_not_constant(name)?;
     }
     let nt = dims.n_theta().unwrap_or(usize::MAX);
-    let need = dims.depth() + nt + 1;
+    let one = dims.depth().saturating_add(nt).saturating_add(1);
+    // without a calibration file the last fifth is held out: both parts need `one` rows
+    let need = if held_out { one.saturating_mul(5) } else { one };
     if ds.len() < need {
         return Err(DataError::new(
             &ds.source,
@@ -1759,13 +1814,19 @@ fn check_dataset(ds: &Dataset, dims: &ArxDims, what: &str) -> Result<(), DataErr
             format!(
                 "{} data rows in the {what}, but na = {}, nb = {}, ng = {} with {} inputs and {} \
                  scheduling signals is {nt} parameters: at least {need} rows are needed \
-                 (max(na, nb) + n_theta + 1; many more for a useful fit)",
+                 (max(na, nb) + n_theta + 1 = {one}{}; many more for a useful fit)",
                 ds.len(),
                 dims.na,
                 dims.nb,
                 dims.ng,
                 dims.r,
-                dims.s
+                dims.s,
+                if held_out {
+                    ", five times over since without --calib the last fifth is held out for \
+                     the cross-validation"
+                } else {
+                    ""
+                }
             ),
         ));
     }
@@ -1920,12 +1981,19 @@ pub fn arx_cmd(a: &ArxArgs, out: &mut dyn Write) -> Result<(), CliError> {
     let dims = ArxDims::new(train.channels('u').len(), s, a.na, a.nb, a.ng).map_err(|e| {
         CliError::Other(format!("na = {}, nb = {}, ng = {}: {e}", a.na, a.nb, a.ng))
     })?;
-    check_dataset(&train, &dims, "training file")?;
+    let needs_cv = matches!(opts.lambda, LambdaChoice::Cv)
+        || (opts.estimator == Estimator::Bciv && opts.sigma == SigmaChoice::Auto);
+    check_dataset(
+        &train,
+        &dims,
+        "training file",
+        a.calib.is_none() && needs_cv,
+    )?;
     let calib = match &a.calib {
         Some(p) => {
             let (c, b) = read_data(p)?;
             check_same_channels(&train, &c)?;
-            check_dataset(&c, &dims, "calibration file")?;
+            check_dataset(&c, &dims, "calibration file", false)?;
             Some((c, b))
         }
         None => None,
@@ -2011,11 +2079,11 @@ fn print_summary(
     let r = &f.report;
     let d = &f.dims;
     let title = match (opts.estimator, opts.lambda) {
-        (Estimator::Ls, LambdaChoice::Fixed(v)) if v == 0.0 => "LS",
+        (Estimator::Ls, LambdaChoice::Fixed(0.0)) => "LS",
         (Estimator::Ls, _) => "LS-LASSO",
-        (Estimator::Iv, LambdaChoice::Fixed(v)) if v == 0.0 => "IV",
+        (Estimator::Iv, LambdaChoice::Fixed(0.0)) => "IV",
         (Estimator::Iv, _) => "IV-LASSO",
-        (Estimator::Bciv, LambdaChoice::Fixed(v)) if v == 0.0 => "BC-IV",
+        (Estimator::Bciv, LambdaChoice::Fixed(0.0)) => "BC-IV",
         (Estimator::Bciv, _) => "BC-IV-LASSO",
     };
     writeln!(
@@ -2245,7 +2313,7 @@ mod tests {
         let blocks =
             accumulate_blocks::<f64>(&sig, d, &[1.0], Instruments::Simulated(&theta), 7).unwrap();
         assert_eq!(blocks.len(), 7);
-        let cal = Calib::from_blocks(&blocks).unwrap();
+        let cal = Blocked::from_blocks(&blocks).unwrap();
         assert_eq!(cal.total.count(), whole.count());
         for (a, b) in cal.total.values().iter().zip(whole.values()) {
             assert!((a - b).abs() <= 1e-9 * (1.0 + b.abs()));
@@ -2262,5 +2330,7 @@ mod tests {
         for (a, b) in t32.values().iter().zip(whole.values()) {
             assert!((a - b).abs() <= 1e-4 * (1.0 + b.abs()), "{a} vs {b}");
         }
+        // ... and is really f32: not bit-identical
+        assert!(t32.values().iter().zip(whole.values()).any(|(a, b)| a != b));
     }
 }
