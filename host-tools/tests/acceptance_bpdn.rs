@@ -1,6 +1,6 @@
 //! Sparse estimation (issue 3, sparse paper section 4.2): BPDN-SV and BPDN-AIC on B2
-//! (Example I, N = 75, 25 dB) over a range of past windows. The issue's target (mean VAF
-//! >= 95 at every p in 3..14) is not reached yet: this test pins what the implementation
+//! (Example I, N = 75, 25 dB) over a range of past windows. The issue's target (a mean
+//! VAF of at least 95 at every p in 3..14) is not reached yet: this test pins what the implementation
 //! does today (about 90-92 for p = 3..10) so a regression shows, and prints the table.
 
 use lpvid_host::metrics::{mean, vaf_per_output};
