@@ -76,7 +76,7 @@ use crate::cli::{fingerprint, score, CliError, Score};
 use crate::data::{DataError, Dataset};
 use crate::lpvss::Signals;
 use crate::model::{describe, ArxModel, Factor, ModelFile, ModelKind, SignalMap};
-use crate::simulate::Mode;
+use crate::simulate::{simulate, Mode};
 
 /// Statistics on the host: f64 values in `Vec`s.
 pub type Stats = BcivStats<f64, Vec<f64>, Vec<f64>>;
@@ -257,8 +257,8 @@ pub struct ArxOptions {
     pub refit_all: bool,
     /// Accumulation precision.
     pub precision: Precision,
-    /// Blocks of the calibration statistics for the jackknife standard error of the
-    /// calibration cost (one-standard-error rule of the lambda cross-validation).
+    /// Interleaved blocks of the training and calibration statistics for the jackknife
+    /// standard errors of the calibration cost (the one-standard-error rules).
     pub cv_blocks: usize,
     /// Noise-variance ratios rho_s per scheduling signal (sigma_s^2 = rho_s sigma^2);
     /// `None`: all 1.
@@ -1063,8 +1063,10 @@ fn golden(
 }
 
 /// sigma for a fixed support S (section 5.3 on S): the grid minimum of
-/// J_CIV(theta_S(sigma), 0, N_c), refined by golden-section search on the bracketing interval
-/// when `refine`. Returns (sigma, theta_S, cost) or `None` if S is singular everywhere.
+/// J_CIV(theta_S(sigma), 0, N) (theta_S fitted on `train`, the cost on `cal`), refined by
+/// golden-section search on the bracketing interval when `refine`. Returns
+/// (sigma, theta_S, cost), or `None` if S is singular everywhere or the minimum is at the
+/// upper end of the grid (not bracketed).
 fn sigma_on_support(
     train: &Stats,
     cal: &Stats,
@@ -1115,13 +1117,18 @@ fn sigma_on_support(
 /// the noise bias (E[p^2] = p_o^2 + sigma^2, so b_{0,0} = -b_{0,2} sigma^2 cancels the mean
 /// bias of b_{0,2} p^2 u) almost as well as the true structure at the true sigma. Both are
 /// *self-consistent*: S is what cross-validation selects at sigma, and sigma is the
-/// calibration-cost minimiser on S. We take the sparsest self-consistent pair (parsimony, the
-/// reason for the l1 penalty in (9)); ties go to the lower calibration cost. Steps:
+/// cost minimiser on S. We take the sparsest self-consistent pair within one paired standard
+/// error of the cheapest (parsimony, the reason for the l1 penalty in (9)). Steps:
 /// 1. for every grid sigma, the cross-validated support S(sigma) (lambda path, de-biased
-///    refits scored by J_CIV(., 0, N_c));
-/// 2. for every distinct support S found, sigma_S = argmin J_CIV(theta_S(sigma), 0, N_c) (grid,
-///    then golden section);
-/// 3. S is self-consistent when S(sigma_S) = S.
+///    refits scored by J_CIV(., 0, N_c); both the one-standard-error pick and the lowest-cost
+///    pick are kept as candidates);
+/// 2. for every distinct support S found, sigma_S = argmin J_CIV(theta_S(sigma), 0, .) (grid,
+///    then golden section; see [`SigmaData`] for the statistics); a structure whose cost
+///    still falls at the end of the grid does not determine sigma and is dropped;
+/// 3. S is self-consistent when cross-validation at sigma_S selects S again (by either
+///    rule);
+/// 4. among the self-consistent pairs, the sparsest whose calibration cost exceeds the
+///    lowest by at most one paired jackknife standard error.
 fn select(
     train: &Blocked,
     cal: &Blocked,
@@ -2027,6 +2034,10 @@ pub fn arx_cmd(a: &ArxArgs, out: &mut dyn Write) -> Result<(), CliError> {
     let record = fit_record(&opts, &fitted, &grid, files);
     let model = model_file(&fitted, &map, record).map_err(|e| CliError::Other(e.0))?;
     let train_score = score(&model, &train, Mode::FreeRun)?;
+    // with noisy scheduling a locally unstable plant's free run may blow up on the training
+    // data even for the right model: say so rather than print a bare 0 %
+    let (_, yhat) = simulate(&model, &train, Mode::FreeRun)?;
+    let train_diverged = yhat.iter().any(|v| !v.is_finite());
     let val_score = match &val {
         Some(v) => Some(score(&model, v, Mode::FreeRun)?),
         None => None,
@@ -2043,6 +2054,7 @@ pub fn arx_cmd(a: &ArxArgs, out: &mut dyn Write) -> Result<(), CliError> {
             "converged": fitted.report.converged,
             "costs": {"train": fitted.report.train_cost, "calib": fitted.report.calib_cost},
             "train": train_score,
+            "train_free_run_diverged": train_diverged,
             "val": val_score,
             "out": a.out.display().to_string(),
             "fit": model.fit,
@@ -2058,7 +2070,7 @@ pub fn arx_cmd(a: &ArxArgs, out: &mut dyn Write) -> Result<(), CliError> {
             &fitted,
             &opts,
             &train,
-            &train_score,
+            (&train_score, train_diverged),
             val_score.as_ref(),
             out,
         )
@@ -2072,7 +2084,7 @@ fn print_summary(
     f: &ArxFit,
     opts: &ArxOptions,
     train: &Dataset,
-    train_score: &Score,
+    (train_score, train_diverged): (&Score, bool),
     val: Option<&Score>,
     out: &mut dyn Write,
 ) -> std::io::Result<()> {
@@ -2160,7 +2172,19 @@ fn print_summary(
         )?,
         None => writeln!(out, "  J_CIV(theta, 0, N): training {:.4e}", r.train_cost)?,
     }
-    for sc in std::iter::once(train_score).chain(val) {
+    if train_diverged {
+        writeln!(
+            out,
+            "  {} (free-run): the simulation diverges on the measured (noisy) scheduling, no \
+             score",
+            train_score.file
+        )?;
+    }
+    let scores = (!train_diverged)
+        .then_some(train_score)
+        .into_iter()
+        .chain(val);
+    for sc in scores {
         writeln!(
             out,
             "  {} ({}): VAF {:.3} %, BFR {:.2} %",

@@ -396,15 +396,15 @@ pub fn scheduled_states(
     let mut rows = vec![0.0; big_n * w];
     for k in 0..big_n {
         let row = &mut rows[k * w..(k + 1) * w];
-        for j in 0..r {
-            row[j] = sig.u[(k, j)] / sc.u[j];
+        for (j, v) in row[..r].iter_mut().enumerate() {
+            *v = sig.u[(k, j)] / sc.u[j];
         }
-        for j in 0..l {
-            row[r + j] = sig.y[(k, j)] / sc.y[j];
+        for (j, v) in row[r..r + l].iter_mut().enumerate() {
+            *v = sig.y[(k, j)] / sc.y[j];
         }
         row[r + l] = 1.0;
-        for j in 0..s {
-            row[r + l + 1 + j] = (sig.p[(k, j)] - sc.p_center[j]) / sc.p_scale[j];
+        for (j, v) in row[r + l + 1..].iter_mut().enumerate() {
+            *v = (sig.p[(k, j)] - sc.p_center[j]) / sc.p_scale[j];
         }
     }
     let slab = Slab::new(&rows, r, l, m).map_err(|e| e.to_string())?;
@@ -651,14 +651,14 @@ fn add_constant_channels(
     }
     let mut b: Vec<DMatrix<f64>> = vec![DMatrix::zeros(n, r); m];
     let mut d: Vec<DMatrix<f64>> = vec![DMatrix::zeros(l, r); md];
-    for i in 0..m {
+    for (bi, sbi) in b.iter_mut().zip(&ss.b) {
         for (jj, &j) in var_idx.iter().enumerate() {
-            b[i].set_column(j, &ss.b[i].column(jj));
+            bi.set_column(j, &sbi.column(jj));
         }
     }
-    for i in 0..md {
+    for (di, sdi) in d.iter_mut().zip(&ss.d) {
         for (jj, &j) in var_idx.iter().enumerate() {
-            d[i].set_column(j, &ss.d[i].column(jj));
+            di.set_column(j, &sdi.column(jj));
         }
     }
     let mut t = 0;
@@ -762,10 +762,10 @@ fn add_noise_model(ss: &LpvSs, sig: &Signals, kind: Noise) -> Result<(LpvSs, Vec
         c: vec![],
         d: ss.d.clone(),
     };
-    for i in 0..m {
+    for (i, (ai, ki)) in ss.a.iter().zip(&kk).enumerate() {
         let mut a = DMatrix::zeros(nn, nn);
-        a.view_mut((0, 0), (n, n)).copy_from(&ss.a[i]);
-        a.view_mut((0, n), (n, qn)).copy_from(&(&kk[i] * &ca));
+        a.view_mut((0, 0), (n, n)).copy_from(ai);
+        a.view_mut((0, n), (n, qn)).copy_from(&(ki * &ca));
         if i == 0 {
             a.view_mut((n, n), (qn, qn)).copy_from(&(&sh + &e1 * &ca));
         }
@@ -774,7 +774,7 @@ fn add_noise_model(ss: &LpvSs, sig: &Signals, kind: Noise) -> Result<(LpvSs, Vec
         b.view_mut((0, 0), (n, r)).copy_from(&ss.b[i]);
         out.b.push(b);
         let mut k = DMatrix::zeros(nn, l);
-        k.view_mut((0, 0), (n, l)).copy_from(&kk[i]);
+        k.view_mut((0, 0), (n, l)).copy_from(ki);
         if i == 0 {
             k.view_mut((n, 0), (qn, l)).copy_from(&e1);
         }
