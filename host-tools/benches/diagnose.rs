@@ -46,9 +46,10 @@ fn bench(c: &mut Criterion) {
             group.measurement_time(std::time::Duration::from_secs(60));
         }
         let id = format!("B2 N={n}");
-        group.bench_function(BenchmarkId::new("validate (free run + VAF/BFR)", &id), |b| {
-            b.iter(|| black_box(score(&model, &val, Mode::FreeRun).unwrap()))
-        });
+        group.bench_function(
+            BenchmarkId::new("validate (free run + VAF/BFR)", &id),
+            |b| b.iter(|| black_box(score(&model, &val, Mode::FreeRun).unwrap())),
+        );
         let spec = Spec::from_model(&model, &mut Vec::new()).unwrap();
         group.bench_function(BenchmarkId::new("one PBSID refit", &id), |b| {
             b.iter(|| black_box(fit_spec(&spec, &train, &model.fit).unwrap()))

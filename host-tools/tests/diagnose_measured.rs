@@ -1,0 +1,170 @@
+//! `lpvid diagnose --fix` on measured data (../shared/data, see its README): smart rotor at
+//! both speeds, cascaded tanks, EMPS, Silverbox, unbalanced disk. Each run identifies a model
+//! with `lpvid pbsid` as a user would (settings below), diagnoses it with --fix --max-steps 3
+//! and asserts that the validation error drops when a finding was applied. The figures are in
+//! docs/diagnose-measured.md. Tests skip with a message when ../shared/data is absent.
+//! Run in release mode: `cargo test --release --test diagnose_measured -- --nocapture`.
+
+mod diagnose_support;
+
+use std::path::Path;
+
+use diagnose_support::shared_data;
+use lpvid_host::data::Dataset;
+use lpvid_host::diagnose::{diagnose, report, Options};
+use lpvid_host::model::ModelFile;
+use lpvid_host::simulate::Mode;
+
+/// A measured case: data file(s), segments (row ranges) and the `lpvid pbsid` options.
+struct Case {
+    name: &'static str,
+    train: (&'static str, usize, usize),
+    val: (&'static str, usize, usize),
+    pbsid: &'static [&'static str],
+}
+
+const CASES: [Case; 6] = [
+    Case {
+        name: "smart rotor 370 rpm",
+        train: ("smart-rotor-370rpm.csv", 0, 5000),
+        val: ("smart-rotor-370rpm.csv", 5000, 10000),
+        pbsid: &["--past", "10"],
+    },
+    Case {
+        name: "smart rotor 430 rpm",
+        train: ("smart-rotor-430rpm.csv", 0, 5000),
+        val: ("smart-rotor-430rpm.csv", 5000, 10000),
+        pbsid: &["--past", "10"],
+    },
+    Case {
+        name: "cascaded tanks",
+        train: ("cascaded-tanks-estimation.csv", 0, usize::MAX),
+        val: ("cascaded-tanks-validation.csv", 0, usize::MAX),
+        pbsid: &["--past", "10"],
+    },
+    Case {
+        name: "EMPS",
+        train: ("emps.csv", 0, usize::MAX),
+        val: ("emps-pulses.csv", 0, usize::MAX),
+        pbsid: &["--past", "10"],
+    },
+    Case {
+        name: "Silverbox",
+        train: ("silverbox-snls80mv.csv", 40960, 60960),
+        val: ("silverbox-snls80mv.csv", 61440, 71440),
+        pbsid: &["--past", "10"],
+    },
+    Case {
+        name: "unbalanced disk",
+        train: ("unbalanced-disk.csv", 0, 10000),
+        val: ("unbalanced-disk.csv", 10000, 15000),
+        pbsid: &["--past", "10"],
+    },
+];
+
+fn segment(dir: &Path, (file, lo, hi): (&str, usize, usize), tag: &str) -> Dataset {
+    let ds = Dataset::read_csv(&dir.join(file)).unwrap();
+    let hi = hi.min(ds.len());
+    Dataset {
+        source: format!("{file}[{lo}..{hi}]{tag}"),
+        names: ds.names.clone(),
+        cols: ds.cols.iter().map(|c| c[lo..hi].to_vec()).collect(),
+    }
+}
+
+fn mse(model: &ModelFile, ds: &Dataset, mode: Mode) -> f64 {
+    diagnose_support::mse(model, ds, mode)
+}
+
+fn run(case: &Case) {
+    let Some(data) = shared_data() else {
+        println!(
+            "SKIPPED {}: ../shared/data (measured data, see its README) is not next to the checkout",
+            case.name
+        );
+        return;
+    };
+    let tmp = tempfile::tempdir().unwrap();
+    let train = segment(&data, case.train, "");
+    let val = segment(&data, case.val, "");
+    let tp = tmp.path().join("train.csv");
+    let vp = tmp.path().join("val.csv");
+    train.write_csv(&tp).unwrap();
+    val.write_csv(&vp).unwrap();
+    let mp = tmp.path().join("model.json");
+    let mut args: Vec<String> = vec!["lpvid".into(), "pbsid".into(), "--train".into()];
+    args.push(tp.display().to_string());
+    args.extend(case.pbsid.iter().map(|s| s.to_string()));
+    args.extend(["--out".to_string(), mp.display().to_string()]);
+    lpvid_host::cli::run(args, &mut Vec::new()).unwrap();
+    let model = ModelFile::read(&mp).unwrap();
+    let train = Dataset::read_csv(&tp).unwrap();
+    let val = Dataset::read_csv(&vp).unwrap();
+    let t0 = std::time::Instant::now();
+    let opts = Options {
+        fix: true,
+        max_steps: 3,
+        threads: 0,
+    };
+    let mut out = diagnose(&model, &train, &val, &opts).unwrap();
+    out.report.model = format!("{} ({})", case.name, case.pbsid.join(" "));
+    println!("===== {} ({:.1} s)", case.name, t0.elapsed().as_secs_f64());
+    println!("{}", report::summary(&out.report, &[]));
+    if let Some(a) = out.report.applied.first() {
+        let mode = if a.residual == "one-step" {
+            Mode::Predictor
+        } else {
+            Mode::FreeRun
+        };
+        let before = mse(&model, &val, mode);
+        let after = mse(&out.model, &val, mode);
+        println!(
+            "{}: {} validation MSE {before:.4e} -> {after:.4e} ({:.2}x)",
+            case.name,
+            a.residual,
+            before / after
+        );
+        assert!(after < before, "{}: {before} -> {after}", case.name);
+        let after_vaf = out.report.after.as_ref().unwrap().vaf_mean;
+        if mode == Mode::FreeRun {
+            assert!(
+                after_vaf > out.report.before.vaf_mean,
+                "{}: VAF {} -> {after_vaf}",
+                case.name,
+                out.report.before.vaf_mean
+            );
+        }
+    } else {
+        println!("{}: no finding above the noise threshold", case.name);
+    }
+}
+
+#[test]
+fn smart_rotor_370() {
+    run(&CASES[0]);
+}
+
+#[test]
+fn smart_rotor_430() {
+    run(&CASES[1]);
+}
+
+#[test]
+fn cascaded_tanks() {
+    run(&CASES[2]);
+}
+
+#[test]
+fn emps() {
+    run(&CASES[3]);
+}
+
+#[test]
+fn silverbox() {
+    run(&CASES[4]);
+}
+
+#[test]
+fn unbalanced_disk() {
+    run(&CASES[5]);
+}
