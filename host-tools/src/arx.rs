@@ -2175,16 +2175,28 @@ fn print_summary(
     if train_diverged {
         writeln!(
             out,
-            "  {} (free-run): the simulation diverges on the measured (noisy) scheduling, no \
-             score",
+            "  {} (free-run): the simulation diverges on the measured scheduling, no score",
             train_score.file
         )?;
+    } else {
+        // the free run uses the measured scheduling: with sigma_eta > 0 that is noisy, and
+        // the score reflects the noise as much as the model
+        let note = if r.sigma_p > 0.0 {
+            format!(
+                "  (simulated with the noisy scheduling, sigma_eta ~ {:.3}: the validation score \
+                 on clean data is the measure of the model)",
+                r.sigma_p
+            )
+        } else {
+            String::new()
+        };
+        writeln!(
+            out,
+            "  {} ({}): VAF {:.3} %, BFR {:.2} %{note}",
+            train_score.file, train_score.mode, train_score.vaf_mean, train_score.bfr_mean
+        )?;
     }
-    let scores = (!train_diverged)
-        .then_some(train_score)
-        .into_iter()
-        .chain(val);
-    for sc in scores {
+    if let Some(sc) = val {
         writeln!(
             out,
             "  {} ({}): VAF {:.3} %, BFR {:.2} %",
