@@ -69,6 +69,8 @@ fn diagnose_fix_writes_model_report_and_plots() {
         .any(|f| f.col == "u1" && f.delay == 5);
     assert!(delayed, "{:?}", fixed.signals.inputs);
     assert_eq!(fixed.fit["method"], "lpv-pbsid-opt");
+    assert_eq!(fixed.fit["diagnose"][0]["effect"], "input-delay");
+    assert!(fixed.fit["train"]["fnv1a64"].is_string());
 
     let rep: Value = serde_json::from_str(&std::fs::read_to_string(&rp).unwrap()).unwrap();
     assert_eq!(rep["findings"][0]["effect"], "input-delay");
@@ -155,4 +157,29 @@ fn diagnose_without_fix_only_reports() {
         help.contains("--max-steps") && help.contains("--plots"),
         "{help}"
     );
+}
+
+#[test]
+fn diagnose_an_arx_model_reports_its_residual() {
+    let (plant, _) = planted("clean");
+    let (train, val) = generate(&plant, 11);
+    let dir = tempfile::tempdir().unwrap();
+    let p = |n: &str| dir.path().join(n).display().to_string();
+    train.write_csv(dir.path().join("t.csv").as_path()).unwrap();
+    val.write_csv(dir.path().join("v.csv").as_path()).unwrap();
+    let arx = r#"{"type": "lpv-arx", "na": 1, "nb": 1,
+        "a": [[-0.5, 0.1]], "b": [[[0.0, 0.0], [1.0, 0.3]]]}"#;
+    std::fs::write(dir.path().join("arx.json"), arx).unwrap();
+    let (tp, vp, mp, rp) = (p("t.csv"), p("v.csv"), p("arx.json"), p("r.json"));
+    let note = lpvid(&[
+        "diagnose", "--model", &mp, "--train", &tp, "--val", &vp, "--fix", "--json", &rp,
+    ])
+    .unwrap();
+    assert!(
+        note.contains("Free-run residual on the validation data"),
+        "{note}"
+    );
+    let rep: Value = serde_json::from_str(&std::fs::read_to_string(&rp).unwrap()).unwrap();
+    assert!(rep["applied"].as_array().unwrap().is_empty(), "{note}");
+    assert!(rep["residual"]["one_step"]["whiteness"][0]["p_value"].is_number());
 }

@@ -239,6 +239,14 @@ fn score_all(
     results.into_iter().flatten().collect()
 }
 
+fn threshold() -> Threshold {
+    Threshold {
+        alpha: ALPHA,
+        min_explained: effects::MIN_EXPLAINED,
+        test: "explained >= min_explained and a one-sided t test of the per-batch log ratio of held-out squared errors (20 batches) at level alpha / (variants tried), replicated on each half of the training data (explained > 0, p < 0.05 each)",
+    }
+}
+
 /// Diagnose `model` with training data `train` and validation data `val`.
 pub fn diagnose(
     model: &ModelFile,
@@ -265,12 +273,47 @@ pub fn diagnose(
         val,
     );
     let mut current = model.clone();
-    let mut base: Fitted = fit_spec(&spec, train, &current.fit)
-        .map_err(|e| format!("cannot refit the model with its own settings: {e}"))?;
-    let sv_first = base.singular_values.clone();
     let mut steps: Vec<Step> = Vec::new();
     let mut applied: Vec<Applied> = Vec::new();
     let mut stopped = String::new();
+    let mut base: Fitted = match fit_spec(&spec, train, &current.fit) {
+        Ok(f) => f,
+        Err(e) => {
+            // the residual tests still stand; no candidate can be compared with a refit
+            let report = Report {
+                command: "diagnose",
+                model: String::new(),
+                train: train.source.clone(),
+                val: val.source.clone(),
+                model_summary: report::model_summary(model),
+                before,
+                before_one_step,
+                after: None,
+                after_one_step: None,
+                findings: vec![],
+                applied,
+                steps,
+                stopped: format!(
+                    "cannot refit the model with its own settings ({e}): no candidate effect was scored"
+                ),
+                threshold: threshold(),
+                residual: Residuals {
+                    free_run: free0,
+                    one_step: one0,
+                },
+                notes,
+                out: None,
+            };
+            return Ok(Outcome {
+                report,
+                model: current,
+                before_eval,
+                after_eval: None,
+                singular_values: (vec![], vec![]),
+            });
+        }
+    };
+    let sv_first = base.singular_values.clone();
     let max_steps = if opts.fix { opts.max_steps.max(1) } else { 1 };
     for step_no in 1..=max_steps {
         let base_eval = Eval::new(&base.model, val)?;
@@ -502,8 +545,22 @@ pub fn diagnose(
             vaf_after: mean_vaf(&eval),
         });
         current = fitted.model.clone();
+        // provenance: what diagnose added, in order, kept in the model's fit record
+        let mut history = match model.fit.get("diagnose") {
+            Some(serde_json::Value::Array(h)) => h.clone(),
+            _ => vec![],
+        };
+        history.extend(applied.iter().map(|a| {
+            serde_json::json!({"effect": a.effect, "detail": a.detail, "explained": a.explained, "residual": a.residual})
+        }));
+        if let serde_json::Value::Object(m) = &mut current.fit {
+            m.insert("diagnose".into(), serde_json::Value::Array(history));
+        }
         spec = s.cand.spec;
-        base = fitted;
+        base = Fitted {
+            model: current.clone(),
+            ..fitted
+        };
         if effects::is_arx(&current) {
             stopped = "the model is now an lpv-arx model (BC-IV path); further candidate refits are implemented for lpv-ss models".into();
             break;
@@ -531,15 +588,14 @@ pub fn diagnose(
         before_one_step,
         after,
         after_one_step,
-        findings: steps.first().map(|s| s.findings.clone()).unwrap_or_default(),
+        findings: steps
+            .first()
+            .map(|s| s.findings.clone())
+            .unwrap_or_default(),
         applied,
         steps,
         stopped,
-        threshold: Threshold {
-            alpha: ALPHA,
-            min_explained: effects::MIN_EXPLAINED,
-            test: "explained >= min_explained and a one-sided t test of the per-batch log ratio of held-out squared errors (20 batches) at level alpha / (variants tried), replicated on each half of the training data (explained > 0, p < 0.05 each)",
-        },
+        threshold: threshold(),
         residual: Residuals {
             free_run: free0,
             one_step: one0,
@@ -602,6 +658,20 @@ pub fn run_cli(a: &DiagnoseArgs, out: &mut dyn Write) -> Result<(), CliError> {
     let mut res = diagnose(&model, &train, &val, &opts)
         .map_err(|e| CliError::Other(format!("diagnose: {e}")))?;
     res.report.model = a.model.display().to_string();
+    if !res.report.applied.is_empty() {
+        if let (Ok(bytes), serde_json::Value::Object(m)) =
+            (std::fs::read(&a.train), &mut res.model.fit)
+        {
+            m.insert(
+                "train".into(),
+                serde_json::json!({
+                    "file": a.train.display().to_string(),
+                    "rows": train.len(),
+                    "fnv1a64": crate::cli::fingerprint(&bytes),
+                }),
+            );
+        }
+    }
     if let Some(p) = &a.out {
         if res.report.applied.is_empty() {
             // nothing to add: the model is written unchanged so that scripts find the file
