@@ -6,7 +6,7 @@
 //!   one for a coloured free-run residual; significance uses Bartlett's band with a Bonferroni
 //!   correction over the lags looked at;
 //! - correlation with candidate nonlinear regressors (u^2, |u| u, sign u, |u|, p^2, p^3, p u,
-//!   p yhat, p_a p_b, yhat^2) over lags 0..=10, same bands;
+//!   p y(k-1), p yhat, p_a p_b, yhat^2) over lags 0..=10, same bands;
 //! - periodogram with significant peaks: an ordinate is a peak when it exceeds the local
 //!   spectral level (running median / ln 2 of the periodogram around it; ordinates are
 //!   ~ level x Exp(1)) by ln(N / (2 alpha)), the level the largest of N/2 independent Exp(1)
@@ -367,6 +367,14 @@ pub fn analyse(
                 format!("{pa}*{name}"),
                 p.iter().zip(*u).map(|(x, y)| x * y).collect(),
             ));
+        }
+        for yname in ds.channels('y') {
+            if let Some(y) = ds.column(&yname) {
+                let v = (0..p.len())
+                    .map(|k| if k > 0 { p[k] * y[k - 1] } else { 0.0 })
+                    .collect();
+                regs.push((format!("{pa}*{yname}(k-1)"), v));
+            }
         }
         for j in 0..yhat.ncols() {
             regs.push((
