@@ -957,7 +957,7 @@ pub fn evidence(
                 ));
             }
             nl(
-                &|r: &str| r.starts_with('p') && (r.contains("*u") || r.contains("*yhat")),
+                &|r: &str| r.starts_with('p') && (r.contains("*u") || r.contains("*y")),
                 &mut ev,
             );
         }
