@@ -257,8 +257,9 @@ pub struct ArxOptions {
     pub refit_all: bool,
     /// Accumulation precision.
     pub precision: Precision,
-    /// Interleaved blocks of the training and calibration statistics for the jackknife
-    /// standard errors of the calibration cost (the one-standard-error rules).
+    /// Interleaved blocks of the calibration statistics for the jackknife standard errors of
+    /// the calibration cost (the one-standard-error rules). The training statistics are one
+    /// accumulator, as on a device.
     pub cv_blocks: usize,
     /// Noise-variance ratios rho_s per scheduling signal (sigma_s^2 = rho_s sigma^2);
     /// `None`: all 1.
@@ -1380,7 +1381,7 @@ pub fn fit(
     };
     let nt = bdims.n_theta();
     let pass = |instr: Instruments<'_>| -> Result<(Blocked, Blocked), ArxError> {
-        let t = Blocked::from_blocks(&acc(train, instr, blocks)?)?;
+        let t = Blocked::from_blocks(&acc(train, instr, 1)?)?;
         let c = match calib {
             Some(c) => Blocked::from_blocks(&acc(c, instr, blocks)?)?,
             None => Blocked::from_blocks(std::slice::from_ref(&t.total))?,
