@@ -831,6 +831,17 @@ fn svd_left(w: &DMatrix<f64>) -> Result<(Vec<f64>, DMatrix<f64>), FitError> {
     Ok((sv, vecs))
 }
 
+/// Eq. (15)-(16) on an explicit Gamma K Z (windows 0..=N-p): the SVD from its first
+/// `windows` columns (the regression windows), state candidates U^T Gamma K Z for all.
+fn states_from_gkz(
+    gkz: &DMatrix<f64>,
+    windows: usize,
+) -> Result<(Vec<f64>, DMatrix<f64>), FitError> {
+    let reg_cols = gkz.columns(0, windows);
+    let (sv, u) = svd_left(&(reg_cols * reg_cols.transpose()))?;
+    Ok((sv, u.transpose() * gkz))
+}
+
 /// Primal path on the (scaled) plain statistics `stats` of w_k = [z_k^p; u_{k+p}; y_{k+p}]:
 /// regression (13) from them, Gamma^p K^p by eq. (14), the SVD of Gamma K Z from
 /// Gamma K S_zz (Gamma K)^T, and T = U^T Gamma^p K^p so that the state candidates are
@@ -938,10 +949,7 @@ fn dual_states(
     }
     let alpha = (vecs * scaled).transpose(); // l x nb
     let gkz = dual_gamma_kz_matrix(dims, f, slab, &alpha, nb + 1);
-    let reg_cols = gkz.columns(0, nb);
-    let w = reg_cols * reg_cols.transpose();
-    let (sv, u) = svd_left(&w)?;
-    let x = u.transpose() * gkz;
+    let (sv, x) = states_from_gkz(&gkz, nb)?;
     let vmax = vals.first().copied().unwrap_or(0.0);
     let lambda = match opts.reg {
         Reg::None | Reg::BpdnAic | Reg::BpdnSv => None,
@@ -1067,10 +1075,7 @@ fn bpdn_states(
         write_pbsid_regressor(dims, slab, k, &mut z);
         gkz.set_column(k, &(&gk * DVector::from_column_slice(&z)));
     }
-    let reg_cols = gkz.columns(0, windows);
-    let w = reg_cols * reg_cols.transpose();
-    let (sv, u) = svd_left(&w)?;
-    let x = u.transpose() * gkz;
+    let (sv, x) = states_from_gkz(&gkz, windows)?;
     let info = RegressionInfo {
         lambda: Some((sel.lambda, 1.0)),
         dof: sel.active as f64,
@@ -1200,10 +1205,7 @@ fn selected_rows_states(
         alpha.set_column(w, &alpha_d.column(a));
     }
     let gkz = dual_gamma_kz_matrix(dims, f, slab, &alpha, nb + 1);
-    let reg_cols = gkz.columns(0, nb);
-    let w = reg_cols * reg_cols.transpose();
-    let (sv, u) = svd_left(&w)?;
-    let x = u.transpose() * gkz;
+    let (sv, x) = states_from_gkz(&gkz, nb)?;
     let vmax = vals.first().copied().unwrap_or(0.0);
     let lambda = match opts.reg {
         Reg::None | Reg::BpdnAic | Reg::BpdnSv => None,
