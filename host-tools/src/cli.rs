@@ -393,6 +393,8 @@ fn run_pbsid(
         opts.past,
         &names,
         obs,
+        // --refine replaced A, B, C, D (it runs inside the fit, before the observer step)
+        matches!(fit.refinement, Some((before, after, _)) if after < before),
     )
     .map_err(CliError::Other)?;
     let mut record = fit_record(opts, &fit, path, ds, bytes);

@@ -55,6 +55,14 @@
 //! [Q S; S^T R] = [W; V][W; V]^T / (columns - 1) (the paper's 1/(N - p - 2)). The
 //! H-infinity model is (A, B from (24), C, D, K from (31)); when the design fails the
 //! least-squares model is kept whole.
+//!
+//! **After an output-error refinement** (`lpvid pbsid --refine`, [`crate::refine`]; the
+//! refinement runs inside the fit, so before this step): (24) would re-estimate A, B from
+//! the subspace states and bring back the finite-past-window bias the refinement removed
+//! (on B2 at p = 5 and 75-100 dB it caps the predictor VAF near 98.5, below Table 1's 99.5
+//! and 99.7). [`hinf_observer_refined`] keeps the refined A, B, C, D, moves the states into
+//! the refined model's basis ([`align_states`]), takes Q, S, R from their residuals
+//! ([`noise_covariance`], eq. (25)) and solves (30)-(31) for that model.
 
 use clarabel::algebra::CscMatrix;
 use clarabel::solver::{
@@ -133,26 +141,8 @@ pub fn residual_model(
     states: &DMatrix<f64>,
     past: usize,
 ) -> Result<(LpvSs, NoiseCov), ObserverError> {
-    model.check().map_err(ObserverError::Input)?;
+    let cols = residual_columns(model, sig, states, past)?;
     let (n, r, l, m) = (model.n(), model.r(), model.l(), model.m());
-    if states.nrows() != n {
-        return Err(ObserverError::Input(format!(
-            "the state sequence has {} rows, the model {n} states",
-            states.nrows()
-        )));
-    }
-    if sig.p.ncols() + 1 != m || sig.u.ncols() != r || sig.y.ncols() != l {
-        return Err(ObserverError::Input(
-            "the data's channels do not match the model".into(),
-        ));
-    }
-    let cols = states.ncols().saturating_sub(1);
-    if cols < 3 || past + cols > sig.len() {
-        return Err(ObserverError::Input(format!(
-            "{cols} residual columns from {} samples and past window {past}: too few, or the states do not match the data",
-            sig.len()
-        )));
-    }
     // (24) left: x_{k+1} = [A, B] [mu_k (x) x_k; mu_k (x) u_k], rows = samples
     let d = m * (n + r);
     let mut phi = DMatrix::<f64>::zeros(cols, d);
@@ -192,7 +182,52 @@ pub fn residual_model(
         out.a.push(solt.columns(i * (n + r), n).into_owned());
         out.b.push(solt.columns(i * (n + r) + n, r).into_owned());
     }
-    // residuals W (state equation) and V (output equation), eq. (25)
+    let nc = noise_covariance(&out, sig, states, past)?;
+    Ok((out, nc))
+}
+
+/// Check that `states` (column j = x_{past+j}) fit `model` and `sig`; the number of
+/// residual columns of (25) (one less than the number of states).
+fn residual_columns(
+    model: &LpvSs,
+    sig: &Signals,
+    states: &DMatrix<f64>,
+    past: usize,
+) -> Result<usize, ObserverError> {
+    model.check().map_err(ObserverError::Input)?;
+    let (n, r, l, m) = (model.n(), model.r(), model.l(), model.m());
+    if states.nrows() != n {
+        return Err(ObserverError::Input(format!(
+            "the state sequence has {} rows, the model {n} states",
+            states.nrows()
+        )));
+    }
+    if sig.p.ncols() + 1 != m || sig.u.ncols() != r || sig.y.ncols() != l {
+        return Err(ObserverError::Input(
+            "the data's channels do not match the model".into(),
+        ));
+    }
+    let cols = states.ncols().saturating_sub(1);
+    if cols < 3 || past + cols > sig.len() {
+        return Err(ObserverError::Input(format!(
+            "{cols} residual columns from {} samples and past window {past}: too few, or the states do not match the data",
+            sig.len()
+        )));
+    }
+    Ok(cols)
+}
+
+/// Eq. (25) for a given model: W = x_{k+1} - sum_i mu^(i) (A^(i) x_k + B^(i) u_k),
+/// V = y_k - C x_k - D u_k over the state sequence (column j = x_{past+j}), and
+/// [Q S; S^T R] = [W; V][W; V]^T / (columns - 1) (the paper's 1/(N - p - 2)).
+pub fn noise_covariance(
+    model: &LpvSs,
+    sig: &Signals,
+    states: &DMatrix<f64>,
+    past: usize,
+) -> Result<NoiseCov, ObserverError> {
+    let cols = residual_columns(model, sig, states, past)?;
+    let (n, l) = (model.n(), model.l());
     let mut wv = DMatrix::<f64>::zeros(n + l, cols);
     for j in 0..cols {
         let k = past + j;
@@ -200,8 +235,8 @@ pub fn residual_model(
         let x = states.column(j);
         let u = sig.u.row(k).transpose();
         let y = sig.y.row(k).transpose();
-        let w = states.column(j + 1) - out.a_at(&mu) * x - scheduled(&out.b, &mu) * &u;
-        let v = y - scheduled(&out.c, &mu) * x - scheduled(&out.d, &mu) * &u;
+        let w = states.column(j + 1) - model.a_at(&mu) * x - scheduled(&model.b, &mu) * &u;
+        let v = y - scheduled(&model.c, &mu) * x - scheduled(&model.d, &mu) * &u;
         wv.view_mut((0, j), (n, 1)).copy_from(&w);
         wv.view_mut((n, j), (l, 1)).copy_from(&v);
     }
@@ -211,13 +246,117 @@ pub fn residual_model(
         ));
     }
     let cov = &wv * wv.transpose() / (cols as f64 - 1.0);
-    let nc = NoiseCov {
+    Ok(NoiseCov {
         q: cov.view((0, 0), (n, n)).into_owned(),
         s: cov.view((0, n), (n, l)).into_owned(),
         r: cov.view((n, n), (l, l)).into_owned(),
         columns: cols,
+    })
+}
+
+/// The subspace state sequence expressed in the basis of a model that was changed after the
+/// realization (the output-error refinement of [`crate::refine`] moves A, B, C, D, and with
+/// them, freely, the state basis). Returns T X with the n x n matrix
+/// ```text
+/// T = argmin_T sum_k |Lx^-1 (T x_{k+1} - A(mu_k) T x_k - B(mu_k) u_k)|^2
+///                  + |Ly^-1 (y_k - C T x_k - D u_k)|^2,
+/// ```
+/// i.e. the basis in which the states best satisfy the model's own equations, so that the
+/// residuals (25) measure noise and not a change of coordinates. Lx Lx^T is the second
+/// moment of the model's own free-run state (from x = 0 over `sig`) and Ly Ly^T that of the
+/// measured output: each equation's residual is measured relative to its signal, which makes
+/// the criterion, and so the aligned states, independent of the basis the model is given in
+/// (a model T0 A T0^-1, T0 B, C T0^-1 gets T0 T X). The criterion is linear in vec(T)
+/// (vec(A T x) = (x^T (x) A) vec(T)): one weighted least-squares problem with n^2 unknowns.
+pub fn align_states(
+    model: &LpvSs,
+    sig: &Signals,
+    states: &DMatrix<f64>,
+    past: usize,
+) -> Result<DMatrix<f64>, ObserverError> {
+    let cols = residual_columns(model, sig, states, past)?;
+    let (n, l) = (model.n(), model.l());
+    // the metric of each equation: inverse Cholesky factors of the signals' second moments
+    let mut x = DVector::<f64>::zeros(n);
+    let mut sxx = DMatrix::<f64>::zeros(n, n);
+    for k in 0..sig.len() {
+        let mu = sig.mu(k);
+        let u = sig.u.row(k).transpose();
+        x = model.a_at(&mu) * &x + scheduled(&model.b, &mu) * &u;
+        sxx += &x * x.transpose();
+    }
+    let syy = sig.y.transpose() * &sig.y;
+    let inv_factor = |m: DMatrix<f64>, what: &str| -> Result<DMatrix<f64>, ObserverError> {
+        let bad = || {
+            ObserverError::Input(format!(
+                "state alignment: the {what} has no positive definite second moment"
+            ))
+        };
+        if !m.iter().all(|v| v.is_finite()) {
+            return Err(bad());
+        }
+        let ch = m.cholesky().ok_or_else(bad)?;
+        ch.l().try_inverse().ok_or_else(bad)
     };
-    Ok((out, nc))
+    let wx = inv_factor(sxx, "model's free-run state")?;
+    let wy = inv_factor(syy, "measured output")?;
+    let rows = cols * (n + l);
+    let mut lhs = DMatrix::<f64>::zeros(rows, n * n);
+    let mut rhs = DVector::<f64>::zeros(rows);
+    let mut blk_x = DMatrix::<f64>::zeros(n, n * n);
+    let mut blk_y = DMatrix::<f64>::zeros(l, n * n);
+    for j in 0..cols {
+        let k = past + j;
+        let mu = sig.mu(k);
+        let u = sig.u.row(k).transpose();
+        let a = model.a_at(&mu);
+        let c = scheduled(&model.c, &mu);
+        let bu = scheduled(&model.b, &mu) * &u;
+        let ydu = sig.y.row(k).transpose() - scheduled(&model.d, &mu) * &u;
+        let (x0, x1) = (states.column(j), states.column(j + 1));
+        // vec(T) index of T[p, q] is p + q n (column-major)
+        for q in 0..n {
+            for p in 0..n {
+                let col = p + q * n;
+                for i in 0..n {
+                    // state equation row i: (T x1)_i - (A T x0)_i = (B u)_i
+                    let mut v = -a[(i, p)] * x0[q];
+                    if i == p {
+                        v += x1[q];
+                    }
+                    blk_x[(i, col)] = v;
+                }
+                for i in 0..l {
+                    // output equation row i: (C T x0)_i = (y - D u)_i
+                    blk_y[(i, col)] = c[(i, p)] * x0[q];
+                }
+            }
+        }
+        let base = j * (n + l);
+        lhs.view_mut((base, 0), (n, n * n))
+            .copy_from(&(&wx * &blk_x));
+        lhs.view_mut((base + n, 0), (l, n * n))
+            .copy_from(&(&wy * &blk_y));
+        rhs.rows_mut(base, n).copy_from(&(&wx * bu));
+        rhs.rows_mut(base + n, l).copy_from(&(&wy * ydu));
+    }
+    if !lhs.iter().chain(rhs.iter()).all(|v| v.is_finite()) {
+        return Err(ObserverError::Input("non-finite states or data".into()));
+    }
+    let svd = lhs.svd(true, true);
+    let smax = svd.singular_values.max();
+    let smin = svd.singular_values.min();
+    if !(smin > 1e-10 * smax) {
+        return Err(ObserverError::Input(
+            "the state sequence does not determine the refined model's basis (rank-deficient alignment)"
+                .into(),
+        ));
+    }
+    let t = svd
+        .solve(&rhs, 0.0)
+        .map_err(|e| ObserverError::Input(format!("state alignment: {e}")))?;
+    let t = DMatrix::from_column_slice(n, n, t.as_slice());
+    Ok(t * states)
 }
 
 /// The whole of section 3.4 for an identified model: (24)-(25) from its state sequence, the
@@ -234,6 +373,29 @@ pub fn hinf_observer(
 ) -> Result<(LpvSs, NoiseCov, HinfDesign), ObserverError> {
     let (mut out, nc) = residual_model(model, sig, states, past)?;
     let design = design_hinf(&out, &nc, sbox, opts)?;
+    out.k = design.k.clone();
+    Ok((out, nc, design))
+}
+
+/// Section 3.4 for a model whose A, B, C, D were refined after the realization
+/// ([`crate::refine::refine_output_error`]): the refined matrices are kept (re-estimating
+/// A, B by (24) from the subspace states would bring back the finite-past-window bias that
+/// the refinement removed), the state sequence is moved into the refined model's basis
+/// ([`align_states`]), Q, S, R come from its residuals (eq. (25), [`noise_covariance`]),
+/// and the gains from the LMI (30) and (31). Returns the observer model (the refined A, B,
+/// C, D with K from (31)), the noise covariances and the design.
+pub fn hinf_observer_refined(
+    model: &LpvSs,
+    sig: &Signals,
+    states: &DMatrix<f64>,
+    past: usize,
+    sbox: &SchedBox,
+    opts: &HinfOptions,
+) -> Result<(LpvSs, NoiseCov, HinfDesign), ObserverError> {
+    let aligned = align_states(model, sig, states, past)?;
+    let nc = noise_covariance(model, sig, &aligned, past)?;
+    let design = design_hinf(model, &nc, sbox, opts)?;
+    let mut out = model.clone();
     out.k = design.k.clone();
     Ok((out, nc, design))
 }
@@ -1191,6 +1353,11 @@ pub fn scheduling_json(names: &[String], sig: &Signals) -> Value {
 /// The observer step of `lpvid pbsid`: with `req.hinf`, design the H-infinity gains from the
 /// fit's states (keeping the least-squares model, and saying why, if the design fails);
 /// always report the stability region. Errors only for a malformed `--scheduling-range`.
+///
+/// `refined`: `ls_model`'s A, B, C, D were replaced by the output-error refinement after the
+/// realization (`lpvid pbsid --refine`; the refinement runs first, then this step). Its
+/// matrices are then kept and the states aligned to its basis ([`hinf_observer_refined`]);
+/// otherwise A, B are re-estimated by (24) as in the paper ([`hinf_observer`]).
 pub fn observer_step(
     ls_model: &LpvSs,
     states: Option<&DMatrix<f64>>,
@@ -1198,6 +1365,7 @@ pub fn observer_step(
     past: usize,
     names: &[String],
     req: &ObserverRequest,
+    refined: bool,
 ) -> Result<ObserverStep, String> {
     let mut sbox = SchedBox::from_signals(names, sig);
     sbox.apply_ranges(&req.ranges)?;
@@ -1205,6 +1373,7 @@ pub fn observer_step(
     let mut lines = Vec::new();
     let (model, used, record, regions_ls) = if req.hinf {
         let attempt = match states {
+            Some(x) if refined => hinf_observer_refined(ls_model, sig, x, past, &sbox, &req.opts),
             Some(x) => hinf_observer(ls_model, sig, x, past, &sbox, &req.opts),
             None => Err(ObserverError::Input(
                 "no state sequence (a fit from statistics): the residuals (25) need the states"
@@ -1230,6 +1399,11 @@ pub fn observer_step(
                     d.certificate.min_eig_grid,
                     d.certificate.max_rho_grid
                 ));
+                lines.push(if refined {
+                    "  model: A, B, C, D of the output-error refinement (--refine ran first), Q, S, R (25) from its residuals".to_string()
+                } else {
+                    "  model: A, B re-estimated by (24); --refine removes the finite-past-window bias before the design".to_string()
+                });
                 let mut rec = d.to_json(&sbox);
                 if let Value::Object(o) = &mut rec {
                     o.insert("requested".into(), "hinf".into());
@@ -1237,11 +1411,20 @@ pub fn observer_step(
                     o.insert(
                         "noise_covariance".into(),
                         json!({"Q": rows(&nc.q), "S": rows(&nc.s), "R": rows(&nc.r), "columns": nc.columns,
-                               "estimate": "eq. (25): residuals of (24) over the state sequence, divided by columns - 1"}),
+                               "estimate": if refined {
+                                   "eq. (25): residuals of the refined model over the state sequence (aligned to its basis), divided by columns - 1"
+                               } else {
+                                   "eq. (25): residuals of (24) over the state sequence, divided by columns - 1"
+                               }}),
                     );
                     o.insert(
                         "model_matrices".into(),
-                        "A, B re-estimated by (24) without innovation regressors; C, D from the realization; K from (31)".into(),
+                        if refined {
+                            "A, B, C, D of the output-error refinement; K from (31)"
+                        } else {
+                            "A, B re-estimated by (24) without innovation regressors; C, D from the realization; K from (31)"
+                        }
+                        .into(),
                     );
                 }
                 let regions_ls = stability_regions(ls_model, &sbox, &reference, REGION_WIDEN);
