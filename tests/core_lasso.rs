@@ -3,8 +3,6 @@
 //! paths equal cold starts, f32 works, and — with a counting global allocator — the BC-IV
 //! statistics updates and the solver allocate nothing.
 
-use std::alloc::{GlobalAlloc, Layout, System};
-use std::cell::Cell;
 use std::ops::ControlFlow;
 
 use lpvid::arx::{ArxDims, ArxWindow};
@@ -20,49 +18,12 @@ use rand::{Rng, SeedableRng};
 
 // ---------------------------------------------------------------- counting allocator
 
-struct Counting;
+mod common;
 
-thread_local! {
-    static COUNTING: Cell<bool> = const { Cell::new(false) };
-    static ALLOCS: Cell<usize> = const { Cell::new(0) };
-}
-
-fn note() {
-    let on = COUNTING.try_with(|c| c.get()).unwrap_or(false);
-    if on {
-        let _ = ALLOCS.try_with(|a| a.set(a.get() + 1));
-    }
-}
-
-unsafe impl GlobalAlloc for Counting {
-    unsafe fn alloc(&self, layout: Layout) -> *mut u8 {
-        note();
-        unsafe { System.alloc(layout) }
-    }
-    unsafe fn alloc_zeroed(&self, layout: Layout) -> *mut u8 {
-        note();
-        unsafe { System.alloc_zeroed(layout) }
-    }
-    unsafe fn realloc(&self, ptr: *mut u8, layout: Layout, new_size: usize) -> *mut u8 {
-        note();
-        unsafe { System.realloc(ptr, layout, new_size) }
-    }
-    unsafe fn dealloc(&self, ptr: *mut u8, layout: Layout) {
-        unsafe { System.dealloc(ptr, layout) }
-    }
-}
+use common::counting_alloc::{count_allocs, Counting};
 
 #[global_allocator]
 static GLOBAL: Counting = Counting;
-
-/// Run `f` and return the number of allocations it made on this thread.
-fn count_allocs<R>(f: impl FnOnce() -> R) -> (R, usize) {
-    ALLOCS.with(|a| a.set(0));
-    COUNTING.with(|c| c.set(true));
-    let r = f();
-    COUNTING.with(|c| c.set(false));
-    (r, ALLOCS.with(|a| a.get()))
-}
 
 // ---------------------------------------------------------------- reference solver
 

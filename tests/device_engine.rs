@@ -2,40 +2,15 @@
 //! answered from the cache, and zero heap allocations while it handles frames (a counting
 //! global allocator watches this thread).
 
-use std::alloc::{GlobalAlloc, Layout as AllocLayout, System};
-use std::cell::Cell;
-use std::sync::atomic::{AtomicUsize, Ordering};
-
 use lpvid::device::DefaultDevice;
 use lpvid::protocol::{
     decode_frame, encode_frame, write_values, Config, ErrorCode, Layout, Message, ModelChunk,
     SolveRequest,
 };
 
-struct Counting;
+mod common;
 
-static ALLOCS: AtomicUsize = AtomicUsize::new(0);
-thread_local! {
-    static WATCH: Cell<bool> = const { Cell::new(false) };
-}
-
-unsafe impl GlobalAlloc for Counting {
-    unsafe fn alloc(&self, l: AllocLayout) -> *mut u8 {
-        if WATCH.with(|w| w.get()) {
-            ALLOCS.fetch_add(1, Ordering::Relaxed);
-        }
-        System.alloc(l)
-    }
-    unsafe fn dealloc(&self, p: *mut u8, l: AllocLayout) {
-        System.dealloc(p, l)
-    }
-    unsafe fn realloc(&self, p: *mut u8, l: AllocLayout, n: usize) -> *mut u8 {
-        if WATCH.with(|w| w.get()) {
-            ALLOCS.fetch_add(1, Ordering::Relaxed);
-        }
-        System.realloc(p, l, n)
-    }
-}
+use common::counting_alloc::{self, Counting};
 
 #[global_allocator]
 static GLOBAL: Counting = Counting;
@@ -118,7 +93,7 @@ fn exactly_once_and_zero_allocations() {
         forgetting: 1.0,
     };
 
-    WATCH.with(|w| w.set(true));
+    counting_alloc::start();
     let n = frame(7, &Message::Hello { version: 1 }, &mut buf);
     assert!(handle(&mut dev, &buf[..n]).unwrap().ok);
     let n = frame(8, &Message::Configure(cfg), &mut buf);
@@ -266,15 +241,11 @@ fn exactly_once_and_zero_allocations() {
     assert!(handle(&mut dev, &buf[..n]).unwrap().ok);
     let n = frame(seq, &Message::Reset, &mut buf);
     assert!(handle(&mut dev, &buf[..n]).unwrap().ok);
-    WATCH.with(|w| w.set(false));
+    let allocs = counting_alloc::stop();
 
     assert_eq!(dev.status().next_sample, 0);
     assert_eq!(dev.status().windows, 0);
-    assert_eq!(
-        ALLOCS.load(Ordering::Relaxed),
-        0,
-        "the device engine allocated"
-    );
+    assert_eq!(allocs, 0, "the device engine allocated");
 }
 
 #[test]
