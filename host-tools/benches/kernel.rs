@@ -1,0 +1,64 @@
+//! Kernel construction (issue 3): the N x N kernel matrix Z^T Z of the dual problem (19) by
+//! Theorem 10 of the kernel paper (products of mu and z inner products, never forming Z)
+//! against forming Z of eq. (12) explicitly (q x N, column k = z_k^p) and multiplying it
+//! with faer's blocked SIMD product (lower triangle only, like a BLAS syrk), in the same run,
+//! at p = 8, 10, 12, 14 on B2 (N = 75, s = 1, q up to 65 532) and B3 (N = 250, r = l = 2,
+//! q up to 131 064; Z then takes 247 MB). Both single-threaded. The two matrices agree to
+//! rounding (checked here before timing, and by `tests/kernel_explicit.rs`).
+//!
+//! `cargo bench -p lpvid-host --bench kernel -- --warm-up-time 1 --measurement-time 3`
+
+#[path = "kernel/explicit.rs"]
+mod explicit;
+
+use criterion::{black_box, criterion_group, criterion_main, BenchmarkId, Criterion};
+use faer::Par;
+use lpvid::{PbsidDims, Slab};
+use lpvid_host::systems;
+
+fn kernel_construction(c: &mut Criterion) {
+    let cases = [
+        ("B2", systems::b2(75, 25.0, 1).train),
+        ("B3", systems::b3(250, 1).train),
+    ];
+    for (name, sig) in &cases {
+        let (r, l, s) = (sig.u.ncols(), sig.y.ncols(), sig.p.ncols());
+        let rows = explicit::slab_rows(sig);
+        let slab = Slab::new(&rows, r, l, s + 1).unwrap();
+        let mut group = c.benchmark_group(format!("kernel_{name}"));
+        group.sample_size(10);
+        for p in [8usize, 10, 12, 14] {
+            let dims = PbsidDims::new(r, l, s, p).unwrap();
+            let q = dims.q().unwrap();
+            let nb = sig.len() - p;
+            eprintln!(
+                "{name} p={p}: N = {nb} windows, q = {q}, Z = {:.1} MB",
+                (q * nb * 8) as f64 / 1e6
+            );
+            // same matrix both ways (to rounding) before anything is timed
+            let (k10, kz) = explicit::both(&dims, &slab, nb);
+            let d = explicit::rel_diff(&k10, &kz);
+            assert!(d < 1e-12, "{name} p={p}: relative difference {d:e}");
+            eprintln!("{name} p={p}: max relative difference {d:.1e}");
+            let mut z = vec![0.0f64; q * nb];
+            explicit::form_z(&dims, &slab, nb, &mut z);
+            let id = format!("{name} p={p}");
+            group.bench_function(BenchmarkId::new("theorem 10", &id), |b| {
+                b.iter(|| black_box(explicit::by_theorem10(&dims, &slab, nb)))
+            });
+            group.bench_function(BenchmarkId::new("explicit Z, Z^T Z", &id), |b| {
+                b.iter(|| {
+                    explicit::form_z(&dims, &slab, nb, &mut z);
+                    black_box(explicit::gram_of_z(&z, q, nb, Par::Seq))
+                })
+            });
+            group.bench_function(BenchmarkId::new("Z^T Z alone (Z given)", &id), |b| {
+                b.iter(|| black_box(explicit::gram_of_z(&z, q, nb, Par::Seq)))
+            });
+        }
+        group.finish();
+    }
+}
+
+criterion_group!(benches, kernel_construction);
+criterion_main!(benches);
