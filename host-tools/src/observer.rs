@@ -346,7 +346,7 @@ pub fn align_states(
     let svd = lhs.svd(true, true);
     let smax = svd.singular_values.max();
     let smin = svd.singular_values.min();
-    if !(smin > 1e-10 * smax) {
+    if smin <= 1e-10 * smax {
         return Err(ObserverError::Input(
             "the state sequence does not determine the refined model's basis (rank-deficient alignment)"
                 .into(),
