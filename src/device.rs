@@ -26,9 +26,9 @@
 //!
 //! Size: the struct holds all storage inline: W + G + R + X + M floats, 3 F bytes (receive,
 //! scratch, transmit buffers; F bytes cover a raw frame of [`max_raw`]`(F)`), and about 100
-//! bytes of counters. Building a configuration creates the statistics arrays as temporaries
-//! before moving them in, so budget that much stack (a firmware with G = 8 001 f32 values
-//! needs ~32 KiB of stack once per configuration).
+//! bytes of counters. A configuration builds the statistics in place
+//! ([`PbsidStatsArrays::init_in_place`]): only the window (`W` values) passes through the
+//! stack, never the Gram.
 
 use crate::error::Error;
 use crate::lasso::{cross_from, CoordinateDescent, Leading, Penalty, Problem, Settings};
@@ -37,7 +37,10 @@ use crate::protocol::{
     ErrorCode, ErrorReply, Event, Info, Layout, Message, ModelChunk, Prediction, SolveRequest,
     SolveSummary, Status, WireReal, MESSAGE_HEADROOM, VERSION,
 };
-use crate::stats::{packed_len, stat_vector_len, PbsidStats, StatsLayout};
+use core::mem::MaybeUninit;
+
+use crate::real::Real;
+use crate::stats::{packed_len, stat_vector_len, PbsidStats, PbsidStatsArrays, StatsLayout};
 use crate::window::{window_storage_len, PbsidDims};
 
 /// Largest r + l + s a device accepts (one sample is decoded into a stack array of this
@@ -47,6 +50,66 @@ pub const MAX_CHANNELS: usize = 32;
 /// Statistics over the device's static arrays.
 pub type DeviceStats<T, const W: usize, const G: usize, const R: usize> =
     PbsidStats<T, [T; W], [T; G], [T; R]>;
+
+/// The statistics of a configured device, built in place by
+/// [`PbsidStatsArrays::init_in_place`] at every configuration: the `G` Gram values are zeroed
+/// where the engine lives (a `static` in firmware) instead of being built on the stack and
+/// moved in, so configuring needs no stack of the Gram's size.
+struct StatsSlot<T: Real, const W: usize, const G: usize, const R: usize> {
+    /// `val` is initialised.
+    ready: bool,
+    val: MaybeUninit<DeviceStats<T, W, G, R>>,
+}
+
+impl<T: Real, const W: usize, const G: usize, const R: usize> StatsSlot<T, W, G, R> {
+    const fn empty() -> Self {
+        StatsSlot {
+            ready: false,
+            val: MaybeUninit::uninit(),
+        }
+    }
+
+    fn get(&self) -> Option<&DeviceStats<T, W, G, R>> {
+        // SAFETY: `ready` is set only after `init_in_place` initialised `val`.
+        self.ready.then(|| unsafe { self.val.assume_init_ref() })
+    }
+
+    fn get_mut(&mut self) -> Option<&mut DeviceStats<T, W, G, R>> {
+        // SAFETY: as in `get`.
+        self.ready.then(|| unsafe { self.val.assume_init_mut() })
+    }
+
+    fn is_some(&self) -> bool {
+        self.ready
+    }
+
+    /// (Re)build the statistics for `dims` in place; on error the device is unconfigured.
+    fn configure(&mut self, dims: PbsidDims, layout: StatsLayout) -> Result<(), Error> {
+        self.ready = false;
+        PbsidStatsArrays::init_in_place(&mut self.val, dims, layout)?;
+        self.ready = true;
+        Ok(())
+    }
+}
+
+impl<T: Real, const W: usize, const G: usize, const R: usize> Clone for StatsSlot<T, W, G, R> {
+    fn clone(&self) -> Self {
+        let mut c = Self::empty();
+        if let Some(st) = self.get() {
+            c.val.write(st.clone());
+            c.ready = true;
+        }
+        c
+    }
+}
+
+impl<T: Real, const W: usize, const G: usize, const R: usize> core::fmt::Debug
+    for StatsSlot<T, W, G, R>
+{
+    fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
+        self.get().fmt(f)
+    }
+}
 
 /// The reply a state-changing request got, kept to answer a retransmission.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -103,7 +166,7 @@ struct Engine<
     const M: usize,
     const F: usize,
 > {
-    stats: Option<DeviceStats<T, W, G, R>>,
+    stats: StatsSlot<T, W, G, R>,
     config: Option<Config>,
     next_sample: u32,
     duplicate_samples: u32,
@@ -190,7 +253,7 @@ impl<
         Device {
             rx: Deframer::new(),
             eng: Engine {
-                stats: None,
+                stats: StatsSlot::empty(),
                 config: None,
                 next_sample: 0,
                 duplicate_samples: 0,
@@ -242,7 +305,7 @@ impl<
 
     /// The statistics, once configured.
     pub fn stats(&self) -> Option<&DeviceStats<T, W, G, R>> {
-        self.eng.stats.as_ref()
+        self.eng.stats.get()
     }
 }
 
@@ -288,7 +351,7 @@ impl<
             Some(c) => (c.r, c.l, c.s, c.p),
             None => (0, 0, 0, 0),
         };
-        let (windows, gram_len) = match &self.stats {
+        let (windows, gram_len) = match self.stats.get() {
             Some(st) => (
                 st.gram().count(),
                 u32::try_from(st.gram().packed().len()).unwrap_or(u32::MAX),
@@ -379,7 +442,7 @@ impl<
         send: &mut S,
     ) {
         let src: Result<&[T], ErrorCode> = if solution {
-            match (&self.solved, &self.stats) {
+            match (&self.solved, self.stats.get()) {
                 (Some(s), Some(_)) => {
                     let n = (s.columns as usize).saturating_mul(s.outputs as usize);
                     Ok(&self.solver[..n.min(X)])
@@ -388,7 +451,7 @@ impl<
                 _ => Err(ErrorCode::NotConfigured),
             }
         } else {
-            match &self.stats {
+            match self.stats.get() {
                 Some(st) => Ok(st.gram().packed()),
                 None => Err(ErrorCode::NotConfigured),
             }
@@ -484,10 +547,9 @@ impl<
         if g > G {
             return err(ErrorCode::Capacity, g);
         }
-        self.stats = None;
-        match PbsidStats::with_storage(dims, layout, [T::ZERO; W], [T::ZERO; G], [T::ZERO; R]) {
-            Ok(st) => self.stats = Some(st),
-            Err(_) => return err(ErrorCode::BadConfig, 0),
+        // in place: the Gram is zeroed where it lives, never copied through the stack
+        if self.stats.configure(dims, layout).is_err() {
+            return err(ErrorCode::BadConfig, 0);
         }
         self.config = Some(c);
         self.next_sample = 0;
@@ -501,7 +563,7 @@ impl<
     }
 
     fn reset(&mut self) -> Cached {
-        let Some(st) = self.stats.as_mut() else {
+        let Some(st) = self.stats.get_mut() else {
             return err(ErrorCode::NotConfigured, 0);
         };
         st.gram_mut().reset();
@@ -525,7 +587,7 @@ impl<
     }
 
     fn samples(&mut self, first: u32, values: &[u8]) -> Cached {
-        let Some(st) = self.stats.as_mut() else {
+        let Some(st) = self.stats.get_mut() else {
             return err(ErrorCode::NotConfigured, 0);
         };
         let d = st.dims();
@@ -567,7 +629,7 @@ impl<
 
     fn solve(&mut self, req: SolveRequest) -> Cached {
         self.solved = None;
-        let Some(st) = self.stats.as_ref() else {
+        let Some(st) = self.stats.get() else {
             return err(ErrorCode::NotConfigured, 0);
         };
         let d = st.dims();

@@ -5,6 +5,9 @@
 //! [`PbsidStats`] feeds it with w_k = [z_k^p; u_{k+p}; y_{k+p}], the statistics from which
 //! problem (13) of the kernel paper (and its regularised forms) is solved without the data.
 
+use core::mem::MaybeUninit;
+use core::ptr::addr_of_mut;
+
 use crate::error::{check_vec, Error, Field};
 use crate::real::{first_non_finite, Real};
 #[cfg(test)]
@@ -227,6 +230,23 @@ impl<T: Real, S: AsRef<[T]> + AsMut<[T]>> Gram<T, S> {
         self.count = 0;
     }
 
+    /// Start over for vectors of length `dim` in the same storage (an empty accumulator, as
+    /// [`Gram::new`] would give, without moving the storage). Fails, changing nothing, if
+    /// the storage is too small.
+    pub fn reset_dim(&mut self, dim: usize) -> Result<(), Error> {
+        let needed = packed_len(dim);
+        let cap = self.data.as_ref().len();
+        if cap < needed {
+            return Err(Error::Capacity {
+                needed,
+                capacity: cap,
+            });
+        }
+        self.dim = dim;
+        self.reset();
+        Ok(())
+    }
+
     /// Overwrite the contents (e.g. statistics pulled from a device). `packed` must have
     /// `packed_len(dim)` finite values.
     pub fn load(&mut self, packed: &[T], count: u64) -> Result<(), Error> {
@@ -392,6 +412,39 @@ where
         })
     }
 
+    /// Configure again for `dims` and `layout` in place: the Gram and scratch storage stay
+    /// where they are (no copy of the Gram through the stack, unlike building a new value
+    /// with [`PbsidStats::with_storage`]); only the window gets the new storage `window`
+    /// (small: `window_storage_len` values). The statistics start empty. Fails, changing
+    /// nothing, if a storage is too small.
+    pub fn reconfigure(
+        &mut self,
+        dims: PbsidDims,
+        layout: StatsLayout,
+        window: SW,
+    ) -> Result<(), Error> {
+        let len = stat_vector_len(&dims, layout)?;
+        if self.scratch.as_ref().len() < len {
+            return Err(Error::Capacity {
+                needed: len,
+                capacity: self.scratch.as_ref().len(),
+            });
+        }
+        let needed = packed_len(len);
+        let cap = self.gram.data.as_ref().len();
+        if cap < needed {
+            return Err(Error::Capacity {
+                needed,
+                capacity: cap,
+            });
+        }
+        self.window = Window::new(dims, window)?;
+        self.gram.reset_dim(len)?;
+        self.layout = layout;
+        self.len = len;
+        Ok(())
+    }
+
     /// The dimensions.
     pub fn dims(&self) -> PbsidDims {
         self.window.dims()
@@ -458,6 +511,58 @@ impl<T: Real, const W: usize, const G: usize, const R: usize> PbsidStatsArrays<T
             });
         }
         Self::with_storage(dims, layout, [T::ZERO; W], [T::ZERO; G], [T::ZERO; R])
+    }
+
+    /// Build the statistics for `dims` directly in `slot` (a `static` of the firmware, or a
+    /// field of a larger struct) and return them: the Gram (`G` values, tens of KiB on a
+    /// device) is zeroed where it lives and never passes through the stack, whereas
+    /// [`PbsidStatsArrays::new`] returns the arrays by value. Only the window (`W` values)
+    /// is built on the stack. `slot` may already hold statistics: they are overwritten (the
+    /// type has no destructor). On error (a capacity too small, bad dimensions) `slot` is
+    /// left untouched.
+    pub fn init_in_place(
+        slot: &mut MaybeUninit<Self>,
+        dims: PbsidDims,
+        layout: StatsLayout,
+    ) -> Result<&mut Self, Error> {
+        let len = stat_vector_len(&dims, layout)?;
+        if R < len {
+            return Err(Error::Capacity {
+                needed: len,
+                capacity: R,
+            });
+        }
+        if G < packed_len(len) {
+            return Err(Error::Capacity {
+                needed: packed_len(len),
+                capacity: G,
+            });
+        }
+        let window = Window::new(dims, [T::ZERO; W])?;
+        let p = slot.as_mut_ptr();
+        // SAFETY: `p` points to writable, suitably aligned memory for one `Self`. Every field
+        // (and every element of the two large arrays) is written exactly once through raw
+        // field pointers, without creating a reference to uninitialised memory, before the
+        // slot is assumed initialised. Overwriting a previous value leaks nothing: `Self`
+        // holds plain arrays and `Copy` fields only and has no `Drop`.
+        unsafe {
+            addr_of_mut!((*p).window).write(window);
+            let g = addr_of_mut!((*p).gram);
+            addr_of_mut!((*g).dim).write(len);
+            addr_of_mut!((*g).count).write(0);
+            addr_of_mut!((*g)._t).write(core::marker::PhantomData);
+            let data = addr_of_mut!((*g).data) as *mut T;
+            for i in 0..G {
+                data.add(i).write(T::ZERO);
+            }
+            let scratch = addr_of_mut!((*p).scratch) as *mut T;
+            for i in 0..R {
+                scratch.add(i).write(T::ZERO);
+            }
+            addr_of_mut!((*p).layout).write(layout);
+            addr_of_mut!((*p).len).write(len);
+            Ok(slot.assume_init_mut())
+        }
     }
 }
 
@@ -555,6 +660,102 @@ mod tests {
         assert_eq!(st.gram().get(n - 2, n - 2), 9.0);
         let sum_p: f32 = (2..10).map(|k| 0.1 * k as f32).sum::<f32>() + 1.0;
         assert!((st.gram().get(n - 2, n - 1) - sum_p).abs() < 1e-5);
+    }
+
+    #[test]
+    fn in_place_configuration_equals_by_value() {
+        // capacities of B1-like dims at p = 2, used for smaller configurations too
+        const W: usize = window_storage_len(2, 1, 1, 2);
+        const D: usize = stat_vector_len_const(2, 1, 1, 2, true);
+        const G: usize = packed_len(D);
+        type St = PbsidStatsArrays<f64, W, G, D>;
+        let feed = |st: &mut St, n: usize| {
+            let (r, s) = (st.dims().r, st.dims().s);
+            for k in 0..n {
+                let x = k as f64;
+                let u = [0.3 * x - 1.0, (0.7 * x).sin()];
+                st.update(&u[..r], &[(1.1 * x).cos()], &[0.05 * x][..s])
+                    .unwrap();
+            }
+        };
+        let dims_a = PbsidDims::new(2, 1, 1, 2).unwrap();
+        let dims_b = PbsidDims::new(1, 1, 1, 2).unwrap();
+        let mut by_value = St::new(dims_a, StatsLayout::Extended).unwrap();
+        feed(&mut by_value, 20);
+        // in place, on garbage first: everything is (re)initialised
+        let mut slot = MaybeUninit::<St>::uninit();
+        // SAFETY: f64 arrays and plain fields: any bit pattern is a valid St after writing
+        // every byte, and init_in_place overwrites all of them anyway.
+        unsafe { core::ptr::write_bytes(slot.as_mut_ptr() as *mut u8, 0x7f, size_of::<St>()) };
+        let st = St::init_in_place(&mut slot, dims_a, StatsLayout::Extended).unwrap();
+        assert_eq!(st.gram().count(), 0);
+        assert_eq!(st.gram().dim(), D);
+        feed(st, 20);
+        assert_eq!(st.gram().packed(), by_value.gram().packed());
+        assert_eq!(st.gram().count(), 18);
+        // again over the used slot, other dims: the old statistics are gone
+        let st = St::init_in_place(&mut slot, dims_b, StatsLayout::Plain).unwrap();
+        let mut fresh_b = St::new(dims_b, StatsLayout::Plain).unwrap();
+        feed(st, 12);
+        feed(&mut fresh_b, 12);
+        assert_eq!(
+            st.gram().dim(),
+            stat_vector_len(&dims_b, StatsLayout::Plain).unwrap()
+        );
+        assert_eq!(st.gram().packed(), fresh_b.gram().packed());
+        // too small a capacity: error, and the slot keeps what it had
+        let big = PbsidDims::new(2, 1, 1, 3).unwrap();
+        assert!(matches!(
+            St::init_in_place(&mut slot, big, StatsLayout::Extended),
+            Err(Error::Capacity { .. })
+        ));
+        // SAFETY: initialised above, and the failed call wrote nothing.
+        let st = unsafe { slot.assume_init_mut() };
+        assert_eq!(st.gram().packed(), fresh_b.gram().packed());
+        assert_eq!(st.dims(), dims_b);
+
+        // reconfigure (any storage): same as a fresh value, storage kept, errors change nothing
+        let mut v = PbsidStats::with_storage(
+            dims_b,
+            StatsLayout::Plain,
+            vec![0.0; W],
+            vec![0.0; G],
+            vec![0.0; D],
+        )
+        .unwrap();
+        feed_vec(&mut v, 7);
+        let gram_ptr = v.gram().packed().as_ptr();
+        v.reconfigure(dims_a, StatsLayout::Extended, vec![0.0; W])
+            .unwrap();
+        assert_eq!(v.gram().count(), 0);
+        assert_eq!(v.gram().packed().as_ptr(), gram_ptr);
+        feed_vec(&mut v, 20);
+        assert_eq!(v.gram().packed(), by_value.gram().packed());
+        assert_eq!(v.layout(), StatsLayout::Extended);
+        let before = v.gram().packed().to_vec();
+        assert!(v
+            .reconfigure(big, StatsLayout::Extended, vec![0.0; 4 * W])
+            .is_err());
+        assert_eq!(v.gram().packed(), &before[..]);
+        assert_eq!(v.dims(), dims_a);
+        // Gram alone
+        let mut g = Gram::new(2, [1.0f32; 6]).unwrap();
+        g.update(&[1.0, 2.0]).unwrap();
+        g.reset_dim(3).unwrap();
+        assert_eq!((g.dim(), g.count()), (3, 0));
+        assert_eq!(g.packed(), &[0.0; 6]);
+        assert!(g.reset_dim(4).is_err());
+        assert_eq!(g.dim(), 3);
+    }
+
+    fn feed_vec(st: &mut PbsidStats<f64, Vec<f64>, Vec<f64>, Vec<f64>>, n: usize) {
+        let (r, s) = (st.dims().r, st.dims().s);
+        for k in 0..n {
+            let x = k as f64;
+            let u = [0.3 * x - 1.0, (0.7 * x).sin()];
+            st.update(&u[..r], &[(1.1 * x).cos()], &[0.05 * x][..s])
+                .unwrap();
+        }
     }
 
     #[test]

@@ -11,6 +11,10 @@
 //! Capacities ([`lpvid::device::sizes`]): r = l = s = 1 up to p = 4 with the extended
 //! layout (8 001 Gram values), any configuration whose statistics fit as much (e.g.
 //! r = 2, l = 3, s = 3, p = 1), on-device solves up to 61 columns, models up to n = 8.
+//!
+//! Memory: the engine lives in the static `ENGINE` (.bss); a configuration builds the
+//! statistics inside it in place (`PbsidStatsArrays::init_in_place`), so the stack never holds
+//! a copy of the Gram: `make device-test` measures a 3.7 KiB stack high-water mark.
 #![no_std]
 #![no_main]
 
