@@ -30,7 +30,9 @@ const B6_TRUTH: [&str; 2] = ["a1[p1^2]", "b0[p1^2]"];
 
 /// One run's figures.
 struct Run {
+    a10: f64,
     a12: f64,
+    a20: f64,
     b02: f64,
     sigma: f64,
     bfr: f64,
@@ -52,7 +54,9 @@ fn b6_run(seed: u64, opts: &ArxOptions) -> Run {
     let f = fit(&train, Some(&cal), opts).unwrap();
     let d = f.dims;
     Run {
+        a10: f.report.theta[d.index_a(1, 0).unwrap()],
         a12: f.report.theta[d.index_a(1, 2).unwrap()],
+        a20: f.report.theta[d.index_a(2, 0).unwrap()],
         b02: f.report.theta[d.index_b(0, 0, 2).unwrap()],
         sigma: f.report.sigma_p,
         bfr: bfr_of(&f, &val),
@@ -62,7 +66,9 @@ fn b6_run(seed: u64, opts: &ArxOptions) -> Run {
 }
 
 struct Summary {
+    a10: f64,
     a12: f64,
+    a20: f64,
     a12_sd: f64,
     b02: f64,
     sigma: f64,
@@ -76,7 +82,9 @@ fn summarise(name: &str, runs: &[Run]) -> Summary {
     let mean = |f: &dyn Fn(&Run) -> f64| runs.iter().map(f).sum::<f64>() / n;
     let a12 = mean(&|r| r.a12);
     let s = Summary {
+        a10: mean(&|r| r.a10),
         a12,
+        a20: mean(&|r| r.a20),
         a12_sd: (runs.iter().map(|r| (r.a12 - a12).powi(2)).sum::<f64>() / (n - 1.0)).sqrt(),
         b02: mean(&|r| r.b02),
         sigma: mean(&|r| r.sigma),
@@ -85,9 +93,9 @@ fn summarise(name: &str, runs: &[Run]) -> Summary {
         n: runs.len(),
     };
     println!(
-        "{name}: mean a12 {:.4} (sd {:.4}), mean b02 {:.4}, mean sigma {:.4}, mean BFR {:.4}, \
+        "{name}: mean a10 {:.4}, a12 {:.4} (sd {:.4}), a20 {:.4}, mean b02 {:.4}, mean sigma {:.4}, mean BFR {:.4}, \
          exact structure {}/{}",
-        s.a12, s.a12_sd, s.b02, s.sigma, s.bfr, s.exact, s.n
+        s.a10, s.a12, s.a12_sd, s.a20, s.b02, s.sigma, s.bfr, s.exact, s.n
     );
     for (i, r) in runs.iter().enumerate().filter(|(_, r)| !r.exact).take(3) {
         println!("  run {i}: support {:?}", r.support);
@@ -119,31 +127,104 @@ fn b6_bciv_lasso_meets_the_paper_figures() {
 }
 
 /// The comparison is honest: without the bias correction the same data give the paper's
-/// biased IV figures (Table 1: mean a12 0.388 in our sign; Table 2: BFR 0.6061).
+/// biased IV-LASSO coefficients (Table 1, our sign: a_{1,0} 0.1715, a_{1,2} 0.3882,
+/// a_{2,0} -0.1619). The paper's recipe (`ArxOptions::paper`): plain l1 on the IV cost (8),
+/// lambda from a grid reaching the unpenalised end by the lowest calibration cost
+/// J_IV(theta_lambda, 0, N_c), refined instruments. 20 runs: a12 sd 0.04 per run, so the
+/// standard error of the mean is 0.01 and the tolerances 0.05 are about 5 of them.
+///
+/// Validation BFR: the paper's 0.6061 is *not* reached (ours 0.52, mean over runs; the
+/// per-run sd is 0.06). The cause is in the b coefficients the paper does not tabulate:
+/// the same noisy p(k) in regressor and instrument attenuates b_{0,2} like a_{1,2} (ours
+/// 0.235 for 0.4), and with the paper's own Table 1 a's a BFR of 0.61 needs b_{0,2} near
+/// 0.4 (see `paper_iv_bfr_needs_an_unattenuated_b02`). The assertion below pins our figure
+/// with its Monte-Carlo spread and checks it stays below the paper's.
 #[test]
 fn b6_iv_lasso_reproduces_the_paper_bias() {
-    // the paper's recipe: plain l1 on the IV cost (8), lambda by the lowest calibration
-    // cost of the penalised estimate
     let paper = ArxOptions::paper(4, 2, 2, Estimator::Iv);
     let runs: Vec<Run> = (0..RUNS).map(|seed| b6_run(seed, &paper)).collect();
     let s = summarise("IV-LASSO, paper recipe (B6)", &runs);
-    assert!((s.a12 - 0.39).abs() <= 0.12, "IV-LASSO mean a12 {}", s.a12);
-    assert!((s.bfr - 0.61).abs() <= 0.15, "IV-LASSO mean BFR {}", s.bfr);
+    assert!(
+        (s.a12 - 0.3882).abs() <= 0.05,
+        "IV-LASSO mean a12 {}",
+        s.a12
+    );
+    assert!(
+        (s.a10 - 0.1715).abs() <= 0.05,
+        "IV-LASSO mean a10 {}",
+        s.a10
+    );
+    assert!(
+        (s.a20 + 0.1619).abs() <= 0.05,
+        "IV-LASSO mean a20 {}",
+        s.a20
+    );
+    // b_{0,2} attenuated like a_{1,2} (the reason the BFR stays below the paper's)
+    assert!((s.b02 - 0.235).abs() <= 0.03, "IV-LASSO mean b02 {}", s.b02);
+    assert!(
+        (s.bfr - 0.52).abs() <= 0.04 && s.bfr < 0.6061,
+        "IV-LASSO mean BFR {}",
+        s.bfr
+    );
     assert!(
         s.exact * 10 <= s.n,
         "IV-LASSO should miss the structure: {}/{}",
         s.exact,
         s.n
     );
-    // the unpenalised refined-IV estimate of the full 21-parameter model
+    // the unpenalised refined-IV estimate of the full 21-parameter model is biased the
+    // same way: the bias is the noisy scheduling's, not the Lasso's
     let mut full = ArxOptions::new(4, 2, 2);
     full.estimator = Estimator::Iv;
     full.sigma = SigmaChoice::Fixed(0.0);
     full.lambda = LambdaChoice::Fixed(0.0);
     let runs: Vec<Run> = (0..RUNS).map(|seed| b6_run(seed, &full)).collect();
     let f = summarise("IV, full model, no penalty (B6)", &runs);
-    assert!((f.a12 - 0.39).abs() <= 0.08, "IV mean a12 {}", f.a12);
-    assert!((f.bfr - 0.61).abs() <= 0.1, "IV mean BFR {}", f.bfr);
+    assert!(f.a12 < 0.5 && f.b02 < 0.3, "IV a12 {} b02 {}", f.a12, f.b02);
+    assert!(f.bfr < 0.6, "IV mean BFR {}", f.bfr);
+}
+
+/// Free-run simulation of y(k) = -sum_i a_i(p) y(k-i) + b_{0,2} p(k)^2 u(k) (a: 4 lags x
+/// [1, p, p^2]) and its BFR (fraction) against `y`.
+fn bfr_of_coefficients(a: &[f64; 12], b02: f64, val: &Signals) -> f64 {
+    let n = val.len();
+    let mut yh = vec![0.0; n];
+    for k in 0..n {
+        let p = val.p[(k, 0)];
+        let mut v = b02 * p * p * val.u[(k, 0)];
+        for i in 1..=4.min(k) {
+            let c = &a[3 * (i - 1)..3 * i];
+            v -= (c[0] + c[1] * p + c[2] * p * p) * yh[k - i];
+        }
+        yh[k] = v;
+    }
+    let y: Vec<f64> = val.y.column(0).iter().copied().collect();
+    lpvid_host::metrics::bfr(&y, &yh) / 100.0
+}
+
+/// Why the paper's IV-LASSO BFR (0.6061) is out of reach: its own mean IV-LASSO a's
+/// (Table 1, negated into our sign) reach a BFR of about 0.63 on noise-free validation data
+/// only with b_{0,2} near the truth 0.4; with b_{0,2} attenuated as IV with noisy scheduling
+/// attenuates it (0.235, the test above) they give about 0.44. So the paper's Table 2 figure
+/// implies b estimates much less biased than its a's, or a BFR computed another way (not
+/// stated; e.g. without removing the mean of y, 1 - |y - yhat| / |y|, our IV-LASSO gives 0.56).
+#[test]
+fn paper_iv_bfr_needs_an_unattenuated_b02() {
+    let a_paper = [
+        0.1715, 0.0, 0.3882, -0.1619, 0.0, 0.0040, -0.0044, 0.0, 0.0, -0.0146, 0.0, 0.0011,
+    ];
+    let runs = 10;
+    let (mut true_b, mut attenuated) = (0.0, 0.0);
+    for seed in 0..runs {
+        let (_, _, val) = b6(seed);
+        true_b += bfr_of_coefficients(&a_paper, 0.4, &val) / runs as f64;
+        attenuated += bfr_of_coefficients(&a_paper, 0.235, &val) / runs as f64;
+    }
+    println!(
+        "paper IV-LASSO a's: BFR {true_b:.4} with b02 = 0.4, {attenuated:.4} with b02 = 0.235"
+    );
+    assert!(true_b > 0.6 && true_b < 0.67, "{true_b}");
+    assert!(attenuated < 0.5, "{attenuated}");
 }
 
 /// A system of our own: two scheduling signals with independent noise (the Hermite factors
