@@ -1,14 +1,27 @@
 //! BC-IV statistics of the core (BC-IV paper, section 5): the Hermite correction is
 //! unbiased (Monte-Carlo), statistics merge, bad samples leave no trace, the costs computed
 //! from statistics equal the costs computed from data, and on the B6 system the
-//! bias-corrected estimate is consistent where plain IV is not.
+//! bias-corrected estimate is consistent where plain IV is not. With a counting global
+//! allocator: the f32 device path (two scheduling signals, noise ratios, merge, Psi, the
+//! normal equations, the cost, the Lasso path and refit) allocates nothing (the f64 path:
+//! tests/core_lasso.rs).
+
+use std::ops::ControlFlow;
 
 use lpvid::arx::{write_basis, ArxDims, ArxWindow};
 use lpvid::bciv::{BcivDims, BcivStats};
-use lpvid::lasso::{refit, refit_work_len, Dense, Penalty, Problem};
+use lpvid::lasso::{
+    refit, refit_work_len, work_len, CoordinateDescent, Dense, Penalty, Problem, Settings,
+};
 use lpvid::{Error, Real};
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
+
+mod common;
+use common::counting_alloc::{count_allocs, Counting};
+
+#[global_allocator]
+static GLOBAL: Counting = Counting;
 
 type Stats<T> = BcivStats<T, Vec<T>, Vec<T>>;
 
@@ -533,4 +546,89 @@ fn b6_bciv_lasso_selects_the_true_structure() {
     }
     println!("exact structure in {exact}/{runs} runs");
     assert!(exact >= 4, "exact structure in {exact}/{runs} runs");
+}
+
+/// Issue 4: zero heap allocations in the core's updates and solver, here in f32 as on the
+/// device, with two scheduling signals and two inputs (the Hermite factors of both signals
+/// multiply, noise ratios set), merging two accumulators, evaluating Psi(sigma^2) of
+/// section 5.1, the normal equations and cost (10), the Lasso path and the refit.
+#[test]
+fn zero_allocations_f32_two_signals() {
+    let arx = ArxDims::new(2, 2, 2, 1, 2).unwrap();
+    let d = BcivDims::paper(arx).unwrap();
+    let (nt, nz) = (d.n_theta(), d.n_z());
+    let mut rng = StdRng::seed_from_u64(21);
+    let n = 600;
+    let data: Vec<([f32; 2], f32, [f32; 2])> = (0..n)
+        .map(|k| {
+            let kf = k as f64;
+            let u = [rng.gen::<f32>(), rng.gen::<f32>() - 0.5];
+            let p = [
+                ((0.1 * kf).sin() + 0.2 * normal(&mut rng)) as f32,
+                ((0.037 * kf).cos() + 0.2 * normal(&mut rng)) as f32,
+            ];
+            (u, (0.3 * normal(&mut rng)) as f32, p)
+        })
+        .collect();
+    let mut a: Stats<f32> = new_stats(d);
+    let mut b: Stats<f32> = new_stats(d);
+    a.set_noise_ratios(&[1.0, 0.5]).unwrap();
+    b.set_noise_ratios(&[1.0, 0.5]).unwrap();
+    let mut sim = ArxWindow::new(arx, vec![0.0f32; arx.window_len()]).unwrap();
+    let mut model = vec![0.0f32; nt];
+    model[arx.index_a(1, 3).unwrap()] = 0.4;
+    model[arx.index_b(0, 0, 5).unwrap()] = 0.3;
+    let mut zeta = vec![0.0f32; arx.chi_len()];
+    let mut psi = vec![0.0f32; nz * nt];
+    let mut h = vec![0.0f32; nt * nt];
+    let mut g = vec![0.0f32; nt];
+    let mut theta = vec![0.0f32; nt];
+    let mut best = vec![0.0f32; nt];
+    let mut work = vec![0.0f32; work_len(1, nt)];
+    let mut rwork = vec![0.0f32; refit_work_len(nt)];
+    let (res, allocs) = count_allocs(|| -> Result<(u64, usize, f32), Error> {
+        for (k, (u, y, p)) in data.iter().enumerate() {
+            let st = if k < n / 2 { &mut a } else { &mut b };
+            if k == n / 2 {
+                st.break_window();
+            }
+            if k < arx.depth() {
+                sim.push(u, *y, p)?;
+            } else {
+                sim.simulate_step(&model, u, p)?;
+                sim.write_chi(&mut zeta)?;
+            }
+            st.update(&zeta, u, *y, p)?;
+        }
+        a.merge(&b)?;
+        a.eval_psi(0.04, &mut psi)?;
+        a.normal_equations(0.04, &mut psi, &mut h, &mut g)?;
+        let hm = Dense::new(&h, nt)?;
+        let prob = Problem::new(&hm, &g, 1, Penalty::L1)?;
+        let mut cd = CoordinateDescent::new(1, nt, &mut work[..])?;
+        let settings = Settings {
+            n_lambda: 15,
+            ..Settings::default()
+        };
+        let mut best_cost = f32::MAX;
+        let points = cd.path(&prob, &settings, &mut theta, |_, th| {
+            let j = a.civ_cost(0.04, th).unwrap_or(f32::MAX);
+            if j < best_cost {
+                best_cost = j;
+                best.copy_from_slice(th);
+            }
+            ControlFlow::Continue(())
+        })?;
+        theta.copy_from_slice(&best);
+        refit(&prob, &mut theta, &mut rwork)?;
+        Ok((a.count(), points, a.civ_cost(0.04, &theta)?))
+    });
+    let (count, points, cost) = res.unwrap();
+    assert_eq!(count, (n - 2 * arx.depth()) as u64);
+    assert_eq!(points, 15);
+    assert!(cost.is_finite() && cost >= 0.0, "{cost}");
+    assert_eq!(allocs, 0, "the f32 core path allocated {allocs} times");
+    // the counter does count
+    let (_, c) = count_allocs(|| vec![1u8; 8]);
+    assert!(c >= 1);
 }
