@@ -17,6 +17,7 @@ pub mod bpdn;
 pub mod cli;
 pub mod data;
 pub mod diagnose;
+pub mod kernel_sweep;
 pub mod linalg;
 pub mod link;
 pub mod lpvss;

@@ -47,6 +47,25 @@ pub fn min_norm_from_normal(
     Ok((scaled * vecs.transpose(), rank))
 }
 
+/// Vectors per batch of a host-side Gram update: enough to amortise streaming the packed
+/// matrix, few enough that the batch stays in cache.
+pub const GRAM_BATCH: usize = 64;
+
+/// The core's [`lpvid::Gram::update_batch`], run in its AVX2 build when this CPU has AVX2
+/// (same code and result; the core itself cannot ask the CPU without std).
+pub fn gram_update_batch<S: AsRef<[f64]> + AsMut<[f64]>>(
+    gram: &mut lpvid::Gram<f64, S>,
+    rows: &[f64],
+    n: usize,
+) -> Result<(), lpvid::Error> {
+    #[cfg(target_arch = "x86_64")]
+    if std::is_x86_feature_detected!("avx2") {
+        // SAFETY: AVX2 support was just checked.
+        return unsafe { gram.update_batch_avx2(rows, n) };
+    }
+    gram.update_batch(rows, n)
+}
+
 /// Mean and (population) standard deviation of a column.
 pub fn mean_std(v: impl Iterator<Item = f64> + Clone) -> (f64, f64) {
     let n = v.clone().count() as f64;
@@ -69,6 +88,350 @@ pub fn col(v: &[f64]) -> DVector<f64> {
     DVector::from_column_slice(v)
 }
 
+/// A pivot usable in an LDL^T factorisation of a positive definite matrix.
+fn positive_finite(v: f64) -> bool {
+    v.is_finite() && v > 0.0
+}
+
+/// A symmetric matrix reduced once to tridiagonal form, A = Q T Q^T (blocked Householder,
+/// faer). What a ridge regression with a parameter chosen by GCV needs then costs O(n^2):
+/// the eigenvalues with the eigen-coordinates V^T Q^T B of a few right-hand sides (implicit
+/// QL on T with the rotations applied to those columns instead of accumulating the
+/// eigenvectors, the O(n^3) part of a full eigendecomposition), and the solution
+/// (A + lam I)^{-1} B by a tridiagonal solve.
+pub struct Tridiagonal {
+    n: usize,
+    /// Householder vectors below the subdiagonal (faer's in-place layout).
+    reflectors: faer::Mat<f64>,
+    /// Block Householder factors.
+    factors: faer::Mat<f64>,
+    diag: Vec<f64>,
+    sub: Vec<f64>,
+}
+
+impl Tridiagonal {
+    /// Reduce the symmetric matrix `a` (its lower triangle is read).
+    pub fn new(a: &DMatrix<f64>) -> Tridiagonal {
+        use faer::dyn_stack::{MemBuffer, MemStack};
+        use faer::linalg::evd::tridiag;
+        let n = a.nrows();
+        let mut m = faer::Mat::<f64>::from_fn(n, n, |i, j| if i >= j { a[(i, j)] } else { 0.0 });
+        let bs = faer::linalg::qr::no_pivoting::factor::recommended_block_size::<f64>(n, n);
+        let mut h = faer::Mat::<f64>::zeros(bs.max(1), n.saturating_sub(1));
+        if n > 0 {
+            let par = faer::get_global_parallelism();
+            let mut buf = MemBuffer::new(tridiag::tridiag_in_place_scratch::<f64>(
+                n,
+                par,
+                Default::default(),
+            ));
+            tridiag::tridiag_in_place(
+                m.as_mut(),
+                h.as_mut(),
+                par,
+                MemStack::new(&mut buf),
+                Default::default(),
+            );
+        }
+        let diag = (0..n).map(|i| m[(i, i)]).collect();
+        let sub = (0..n.saturating_sub(1)).map(|i| m[(i + 1, i)]).collect();
+        Tridiagonal {
+            n,
+            reflectors: m,
+            factors: h,
+            diag,
+            sub,
+        }
+    }
+
+    /// Dimension.
+    pub fn dim(&self) -> usize {
+        self.n
+    }
+
+    /// Q^T B (`transpose`) or Q B.
+    fn apply(&self, b: &DMatrix<f64>, transpose: bool) -> DMatrix<f64> {
+        use faer::dyn_stack::{MemBuffer, MemStack};
+        use faer::linalg::householder as hh;
+        let (n, k) = (self.n, b.ncols());
+        assert_eq!(b.nrows(), n);
+        let mut x = faer::Mat::<f64>::from_fn(n, k, |i, j| b[(i, j)]);
+        if n > 1 {
+            let par = faer::get_global_parallelism();
+            let bs = self.factors.nrows();
+            let ess = self.reflectors.as_ref().submatrix(1, 0, n - 1, n - 1);
+            let rows = x.as_mut().subrows_mut(1, n - 1);
+            if transpose {
+                let mut buf = MemBuffer::new(
+                    hh::apply_block_householder_sequence_transpose_on_the_left_in_place_scratch::<
+                        f64,
+                    >(n - 1, bs, k),
+                );
+                hh::apply_block_householder_sequence_transpose_on_the_left_in_place_with_conj(
+                    ess,
+                    self.factors.as_ref(),
+                    faer::Conj::No,
+                    rows,
+                    par,
+                    MemStack::new(&mut buf),
+                );
+            } else {
+                let mut buf = MemBuffer::new(
+                    hh::apply_block_householder_sequence_on_the_left_in_place_scratch::<f64>(
+                        n - 1,
+                        bs,
+                        k,
+                    ),
+                );
+                hh::apply_block_householder_sequence_on_the_left_in_place_with_conj(
+                    ess,
+                    self.factors.as_ref(),
+                    faer::Conj::No,
+                    rows,
+                    par,
+                    MemStack::new(&mut buf),
+                );
+            }
+        }
+        DMatrix::from_fn(n, k, |i, j| x[(i, j)])
+    }
+
+    /// Q^T B: right-hand sides in the tridiagonal coordinates.
+    pub fn to_tridiagonal(&self, b: &DMatrix<f64>) -> DMatrix<f64> {
+        self.apply(b, true)
+    }
+
+    /// Q X: back from the tridiagonal coordinates.
+    pub fn from_tridiagonal(&self, x: &DMatrix<f64>) -> DMatrix<f64> {
+        self.apply(x, false)
+    }
+
+    /// Eigenvalues of T (= of A) in descending order and V^T c for `c` given in the
+    /// tridiagonal coordinates (row i: the coordinates along eigenvector i), by implicit QL
+    /// with Wilkinson shifts whose rotations are applied to the columns of c only.
+    pub fn eigen_projection(&self, c: &DMatrix<f64>) -> Result<(Vec<f64>, DMatrix<f64>), String> {
+        let n = self.n;
+        let k = c.ncols();
+        assert_eq!(c.nrows(), n);
+        let mut d = self.diag.clone();
+        let mut e = self.sub.clone();
+        e.push(0.0);
+        // off-diagonals below this are zero (absolute accuracy: keeps a cluster of zero
+        // eigenvalues of a rank-deficient Gram from stalling the relative test)
+        let anorm = d.iter().chain(&e).fold(0.0f64, |acc, v| acc.max(v.abs()));
+        let tiny = anorm * f64::EPSILON * 1e-6;
+        // w[i * k + j]: coordinate i of right-hand side j
+        let mut w: Vec<f64> = (0..n)
+            .flat_map(|i| (0..k).map(move |j| c[(i, j)]))
+            .collect();
+        for l in 0..n {
+            let mut iter = 0;
+            loop {
+                let mut m = l;
+                while m + 1 < n {
+                    let dd = d[m].abs() + d[m + 1].abs();
+                    if e[m].abs() <= f64::EPSILON * dd + tiny {
+                        break;
+                    }
+                    m += 1;
+                }
+                if m == l {
+                    break;
+                }
+                iter += 1;
+                if iter > 60 {
+                    return Err("tridiagonal QL did not converge".into());
+                }
+                let mut g = (d[l + 1] - d[l]) / (2.0 * e[l]);
+                let mut r = g.hypot(1.0);
+                g = d[m] - d[l] + e[l] / (g + r.copysign(g));
+                let (mut s, mut cc, mut p) = (1.0f64, 1.0f64, 0.0f64);
+                let mut i = m;
+                let mut deflated = false;
+                while i > l {
+                    i -= 1;
+                    let f = s * e[i];
+                    let b = cc * e[i];
+                    r = (f * f + g * g).sqrt();
+                    if !r.is_finite() {
+                        r = f.hypot(g);
+                    }
+                    e[i + 1] = r;
+                    if r == 0.0 {
+                        d[i + 1] -= p;
+                        e[m] = 0.0;
+                        deflated = true;
+                        break;
+                    }
+                    s = f / r;
+                    cc = g / r;
+                    g = d[i + 1] - p;
+                    r = (d[i] - g) * s + 2.0 * cc * b;
+                    p = s * r;
+                    d[i + 1] = g + p;
+                    g = cc * r - b;
+                    let (lo, hi) = w.split_at_mut((i + 1) * k);
+                    for (a, z) in lo[i * k..].iter_mut().zip(hi[..k].iter_mut()) {
+                        let f = *z;
+                        *z = s * *a + cc * f;
+                        *a = cc * *a - s * f;
+                    }
+                }
+                if deflated {
+                    continue;
+                }
+                d[l] -= p;
+                e[l] = g;
+                e[m] = 0.0;
+            }
+        }
+        let mut order: Vec<usize> = (0..n).collect();
+        order.sort_by(|&a, &b| d[b].total_cmp(&d[a]));
+        let vals = order.iter().map(|&i| d[i]).collect();
+        let proj = DMatrix::from_fn(n, k, |row, j| w[order[row] * k + j]);
+        Ok((vals, proj))
+    }
+
+    /// The pivots d and multipliers l of T + lam I = L D L^T, or None when it is not
+    /// numerically positive definite.
+    fn shifted_ldl(&self, lam: f64) -> Option<(Vec<f64>, Vec<f64>)> {
+        let n = self.n;
+        let mut dd = vec![0.0; n];
+        let mut ll = vec![0.0; n];
+        if n == 0 {
+            return Some((dd, ll));
+        }
+        dd[0] = self.diag[0] + lam;
+        for i in 1..n {
+            if !positive_finite(dd[i - 1]) {
+                return None;
+            }
+            ll[i] = self.sub[i - 1] / dd[i - 1];
+            dd[i] = self.diag[i] + lam - ll[i] * self.sub[i - 1];
+        }
+        if !positive_finite(dd[n - 1]) {
+            return None;
+        }
+        Some((dd, ll))
+    }
+
+    /// ||(T + lam I)^{-1} c||_F^2 and tr((T + lam I)^{-1}) in O(n) per column (the diagonal of
+    /// the inverse by the backward recurrence X_ii = 1/d_i + l_{i+1}^2 X_{i+1,i+1} of the
+    /// LDL^T factors), or None when T + lam I is not numerically positive definite.
+    /// These are the residual and the missing degrees of freedom of a dual ridge problem.
+    pub fn shifted_norm_trace(&self, lam: f64, c: &DMatrix<f64>) -> Option<(f64, f64)> {
+        let n = self.n;
+        let (dd, ll) = self.shifted_ldl(lam)?;
+        let mut norm = 0.0;
+        let mut x = vec![0.0; n];
+        for j in 0..c.ncols() {
+            let col = c.column(j);
+            for i in 0..n {
+                x[i] = col[i] - if i > 0 { ll[i] * x[i - 1] } else { 0.0 };
+            }
+            for (v, d) in x.iter_mut().zip(&dd) {
+                *v /= d;
+            }
+            for i in (0..n.saturating_sub(1)).rev() {
+                x[i] -= ll[i + 1] * x[i + 1];
+            }
+            norm += x.iter().map(|v| v * v).sum::<f64>();
+        }
+        let mut trace = 0.0;
+        let mut xii = 0.0;
+        for i in (0..n).rev() {
+            xii = 1.0 / dd[i]
+                + if i + 1 < n {
+                    ll[i + 1] * ll[i + 1] * xii
+                } else {
+                    0.0
+                };
+            trace += xii;
+        }
+        Some((norm, trace))
+    }
+
+    /// Number of eigenvalues of T below `x` (Sylvester's law of inertia on T - x I).
+    fn count_below(&self, x: f64) -> usize {
+        let mut count = 0;
+        let mut d = 1.0;
+        for i in 0..self.n {
+            let off = if i > 0 { self.sub[i - 1] } else { 0.0 };
+            d = self.diag[i] - x - if i > 0 { off * off / d } else { 0.0 };
+            if d == 0.0 {
+                d = -f64::EPSILON * (x.abs() + 1.0);
+            }
+            if d < 0.0 {
+                count += 1;
+            }
+        }
+        count
+    }
+
+    /// The largest eigenvalue, by bisection on Sturm counts from the Gershgorin interval.
+    pub fn largest_eigenvalue(&self) -> f64 {
+        let n = self.n;
+        if n == 0 {
+            return 0.0;
+        }
+        let radius = |i: usize| {
+            let a = if i > 0 { self.sub[i - 1].abs() } else { 0.0 };
+            let b = if i + 1 < n { self.sub[i].abs() } else { 0.0 };
+            a + b
+        };
+        let mut hi = (0..n)
+            .map(|i| self.diag[i] + radius(i))
+            .fold(f64::MIN, f64::max);
+        let mut lo = (0..n)
+            .map(|i| self.diag[i] - radius(i))
+            .fold(f64::MAX, f64::min);
+        for _ in 0..200 {
+            let mid = 0.5 * (lo + hi);
+            if hi - lo <= 4.0 * f64::EPSILON * (lo.abs().max(hi.abs())) || mid == lo || mid == hi {
+                break;
+            }
+            if self.count_below(mid) == n {
+                hi = mid;
+            } else {
+                lo = mid;
+            }
+        }
+        0.5 * (lo + hi)
+    }
+
+    /// (T + lam I)^{-1} c for `c` in the tridiagonal coordinates (symmetric LDL^T without
+    /// pivoting: meant for T + lam I positive definite, lam well above rounding).
+    pub fn solve_shifted(&self, lam: f64, c: &DMatrix<f64>) -> DMatrix<f64> {
+        let n = self.n;
+        let mut x = c.clone();
+        if n == 0 {
+            return x;
+        }
+        let mut dd = vec![0.0; n];
+        let mut ll = vec![0.0; n];
+        dd[0] = self.diag[0] + lam;
+        for i in 1..n {
+            ll[i] = self.sub[i - 1] / dd[i - 1];
+            dd[i] = self.diag[i] + lam - ll[i] * self.sub[i - 1];
+        }
+        for j in 0..x.ncols() {
+            let mut col = x.column_mut(j);
+            for i in 1..n {
+                let prev = col[i - 1];
+                col[i] -= ll[i] * prev;
+            }
+            for i in 0..n {
+                col[i] /= dd[i];
+            }
+            for i in (0..n - 1).rev() {
+                let next = col[i + 1];
+                col[i] -= ll[i + 1] * next;
+            }
+        }
+        x
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -88,5 +451,86 @@ mod tests {
         assert_eq!(rank, 1);
         let pinv = x.clone().pseudo_inverse(1e-12).unwrap();
         assert!((sol - &b * pinv).amax() < 1e-10);
+    }
+}
+
+#[cfg(test)]
+mod tridiagonal_tests {
+    use super::*;
+
+    fn test_matrix(n: usize) -> DMatrix<f64> {
+        let x = DMatrix::from_fn(n + 3, n, |i, j| ((i * 31 + j * 17) % 23) as f64 / 7.0 - 1.5);
+        // rank-deficient on purpose (n + 3 rows but two equal columns)
+        let mut x = x;
+        let c0 = x.column(0).into_owned();
+        x.set_column(n - 1, &c0);
+        x.transpose() * x
+    }
+
+    #[test]
+    fn tridiagonal_eigen_projection_matches_full_eigendecomposition() {
+        for n in [1usize, 2, 5, 40, 130] {
+            let a = test_matrix(n);
+            let b = DMatrix::from_fn(n, 2, |i, j| (i as f64 * 0.3 + j as f64).sin());
+            let t = Tridiagonal::new(&a);
+            let (vals, proj) = t.eigen_projection(&t.to_tridiagonal(&b)).unwrap();
+            let (v2, vecs) = sym_eig(&a).unwrap();
+            let p2 = vecs.transpose() * &b;
+            let scale = v2[0].abs().max(1.0);
+            for i in 0..n {
+                assert!((vals[i] - v2[i]).abs() < 1e-11 * scale, "{n} {i}");
+            }
+            // energies per distinct eigenvalue (vectors of clustered values are not unique)
+            for i in 0..n {
+                if (i > 0 && (v2[i - 1] - v2[i]).abs() < 1e-8 * scale)
+                    || (i + 1 < n && (v2[i] - v2[i + 1]).abs() < 1e-8 * scale)
+                {
+                    continue;
+                }
+                for j in 0..2 {
+                    assert!(
+                        (proj[(i, j)].abs() - p2[(i, j)].abs()).abs() < 1e-9,
+                        "{n} {i}"
+                    );
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn tridiagonal_norm_trace_and_largest_eigenvalue() {
+        let n = 50;
+        let a = test_matrix(n);
+        let b = DMatrix::from_fn(n, 2, |i, j| ((3 * i + j) as f64).sin());
+        let t = Tridiagonal::new(&a);
+        let (vals, vecs) = sym_eig(&a).unwrap();
+        assert!((t.largest_eigenvalue() - vals[0]).abs() < 1e-12 * vals[0]);
+        let lam = 0.05 * vals[0];
+        let (norm, trace) = t.shifted_norm_trace(lam, &t.to_tridiagonal(&b)).unwrap();
+        let proj = vecs.transpose() * &b;
+        let e_norm: f64 = (0..n)
+            .map(|i| proj.row(i).norm_squared() / (vals[i] + lam).powi(2))
+            .sum();
+        let e_trace: f64 = vals.iter().map(|v| 1.0 / (v + lam)).sum();
+        assert!((norm - e_norm).abs() < 1e-10 * e_norm, "{norm} {e_norm}");
+        assert!(
+            (trace - e_trace).abs() < 1e-10 * e_trace,
+            "{trace} {e_trace}"
+        );
+        // a shift that leaves T + lam I indefinite is refused
+        assert!(t.shifted_norm_trace(-0.5 * vals[0], &b).is_none());
+    }
+
+    #[test]
+    fn tridiagonal_ridge_solve_matches_dense_solve() {
+        let n = 60;
+        let a = test_matrix(n);
+        let b = DMatrix::from_fn(n, 3, |i, j| ((i + 2 * j) as f64).cos());
+        let t = Tridiagonal::new(&a);
+        let lam = 0.37;
+        let x = t.from_tridiagonal(&t.solve_shifted(lam, &t.to_tridiagonal(&b)));
+        let shifted = &a + DMatrix::identity(n, n) * lam;
+        let r = &shifted * &x - &b;
+        assert!(r.norm() < 1e-10 * b.norm(), "{}", r.norm());
     }
 }

@@ -18,7 +18,8 @@ use lpvid::{
 use nalgebra::{DMatrix, DVector};
 
 use crate::bpdn;
-use crate::linalg::{min_norm_from_normal, sym_eig};
+use crate::kernel_sweep::{dot4, KernelSweep};
+use crate::linalg::{min_norm_from_normal, sym_eig, Tridiagonal};
 use crate::lpvss::{LpvSs, Signals};
 use lpvid::lasso::SymMatrix;
 
@@ -411,45 +412,51 @@ impl Spectrum {
         self.rows * rss / (deficit * deficit)
     }
 
-    /// Ridge parameter minimising GCV: a log grid over 14 decades below the largest
-    /// eigenvalue, refined by golden-section search in log(lam).
+    /// Ridge parameter minimising GCV (see [`gcv_minimiser`]).
     fn gcv_lambda(&self, cut: f64) -> f64 {
-        let vmax = self.vals.iter().copied().fold(0.0, f64::max).max(1e-300);
-        let f = |e: f64| self.gcv(vmax * 10f64.powf(e), cut);
-        let (lo, hi, step) = (-14.0, 1.0, 0.25);
-        let mut best = (lo, f(lo));
-        let mut e = lo;
-        while e <= hi {
-            let g = f(e);
-            if g < best.1 {
-                best = (e, g);
-            }
-            e += step;
-        }
-        let (mut a, mut b) = (best.0 - step, best.0 + step);
-        let phi = 0.5 * (5f64.sqrt() - 1.0);
-        let mut c = b - phi * (b - a);
-        let mut d = a + phi * (b - a);
-        let (mut fc, mut fd) = (f(c), f(d));
-        for _ in 0..40 {
-            if fc < fd {
-                b = d;
-                d = c;
-                fd = fc;
-                c = b - phi * (b - a);
-                fc = f(c);
-            } else {
-                a = c;
-                c = d;
-                fc = fd;
-                d = a + phi * (b - a);
-                fd = f(d);
-            }
-        }
-        let e = 0.5 * (a + b);
-        let e = if f(e) <= best.1 { e } else { best.0 };
-        vmax * 10f64.powf(e)
+        let vmax = self.vals.iter().copied().fold(0.0, f64::max);
+        gcv_minimiser(vmax, |lam| self.gcv(lam, cut))
     }
+}
+
+/// Ridge parameter minimising `gcv(lam)`: a log grid over 14 decades below the largest
+/// eigenvalue `vmax`, refined by golden-section search in log(lam).
+fn gcv_minimiser(vmax: f64, gcv: impl Fn(f64) -> f64) -> f64 {
+    let vmax = vmax.max(1e-300);
+    let f = |e: f64| gcv(vmax * 10f64.powf(e));
+    let (lo, hi, step) = (-14.0, 1.0, 0.25);
+    let mut best = (lo, f(lo));
+    let mut e = lo;
+    while e <= hi {
+        let g = f(e);
+        if g < best.1 {
+            best = (e, g);
+        }
+        e += step;
+    }
+    let (mut a, mut b) = (best.0 - step, best.0 + step);
+    let phi = 0.5 * (5f64.sqrt() - 1.0);
+    let mut c = b - phi * (b - a);
+    let mut d = a + phi * (b - a);
+    let (mut fc, mut fd) = (f(c), f(d));
+    for _ in 0..40 {
+        if fc < fd {
+            b = d;
+            d = c;
+            fd = fc;
+            c = b - phi * (b - a);
+            fc = f(c);
+        } else {
+            a = c;
+            c = d;
+            fc = fd;
+            d = a + phi * (b - a);
+            fd = f(d);
+        }
+    }
+    let e = 0.5 * (a + b);
+    let e = if f(e) <= best.1 { e } else { best.0 };
+    vmax * 10f64.powf(e)
 }
 
 /// Relative eigenvalue cut-off defining the numerical rank of a Gram matrix.
@@ -480,6 +487,96 @@ fn filter(v: f64, lam: f64, cut: f64) -> f64 {
 /// 1 - phi_i, the part of component i the regularised fit leaves in the residual.
 fn residual_factor(v: f64, lam: f64) -> f64 {
     lam / (v + lam)
+}
+
+/// Which normal equations a ridge step solves: primal (A = Phi Phi^T, B = Phi Y^T) or dual
+/// (A = Phi^T Phi, B = Y^T). The target energy along eigenvector i of A is (V^T B)_i^2 /
+/// lambda_i in the primal and (V^T B)_i^2 in the dual.
+#[derive(Clone, Copy, PartialEq)]
+enum NormalForm {
+    Primal,
+    Dual,
+}
+
+/// Below this fraction of the largest eigenvalue a Tikhonov parameter is solved through the
+/// eigendecomposition (with the rank cut-off) rather than the shifted tridiagonal system.
+const SHIFTED_SOLVE_MIN: f64 = 1e-10;
+
+/// The ridge step shared by every form of regression (13): X = (A + lam I)^{-1} B, lam
+/// chosen by `reg` on the common [`Spectrum`] (so GCV is the same number in the primal and
+/// the dual), lam = 0 the minimum-norm solution (eq. (18)). Tikhonov reduces A to
+/// tridiagonal form once: eigenvalues and target energies without eigenvectors, then one
+/// tridiagonal solve, O(n^2) after the reduction instead of a full eigendecomposition.
+fn ridge_solve(
+    a: &DMatrix<f64>,
+    b: &DMatrix<f64>,
+    form: NormalForm,
+    total: f64,
+    rows: f64,
+    reg: Reg,
+) -> Result<(DMatrix<f64>, RegressionInfo), FitError> {
+    let spectrum = |vals: &[f64], proj: &DMatrix<f64>| Spectrum {
+        energy: vals
+            .iter()
+            .enumerate()
+            .map(|(i, &v)| {
+                let e = proj.row(i).norm_squared();
+                match form {
+                    NormalForm::Dual => e,
+                    NormalForm::Primal if v > 0.0 => e / v,
+                    NormalForm::Primal => 0.0,
+                }
+            })
+            .collect(),
+        vals: vals.to_vec(),
+        total,
+        rows,
+    };
+    let tikhonov = matches!(reg, Reg::TikhonovGcv | Reg::Tikhonov(_));
+    if tikhonov {
+        let tri = Tridiagonal::new(a);
+        let bt = tri.to_tridiagonal(b);
+        let (lam, dof, vmax) = match form {
+            NormalForm::Primal => {
+                // the primal residual needs the energies b_i^2 / lambda_i: eigen-coordinates
+                let (vals, proj) = tri.eigen_projection(&bt)?;
+                let (lam, dof, _) = choose_lambda(reg, &spectrum(&vals, &proj));
+                (lam, dof, vals.first().copied().unwrap_or(0.0).max(0.0))
+            }
+            NormalForm::Dual => {
+                // RSS = lam^2 ||(T + lam I)^{-1} Q^T y||^2 and rows - dof =
+                // lam tr((T + lam I)^{-1}): O(n) per lambda, no eigenvalues needed
+                let vmax = tri.largest_eigenvalue().max(0.0);
+                let curve = |lam: f64| {
+                    tri.shifted_norm_trace(lam, &bt)
+                        .map(|(xx, tr)| (lam * lam * xx, lam * tr))
+                };
+                let lam = match reg {
+                    Reg::Tikhonov(rel) => rel * vmax,
+                    _ => gcv_minimiser(vmax, |lam| match curve(lam) {
+                        Some((rss, deficit)) if deficit > 0.0 => rows * rss / (deficit * deficit),
+                        _ => f64::INFINITY,
+                    }),
+                };
+                let dof = curve(lam).map_or(f64::NAN, |(_, deficit)| rows - deficit);
+                (lam, dof, vmax)
+            }
+        };
+        if lam > SHIFTED_SOLVE_MIN * vmax && dof.is_finite() {
+            let x = tri.from_tridiagonal(&tri.solve_shifted(lam, &bt));
+            let lambda = Some((lam, vmax));
+            return Ok((x, RegressionInfo { lambda, dof }));
+        }
+    }
+    let (vals, vecs) = sym_eig(a)?;
+    let mut proj = vecs.transpose() * b;
+    let (lam, dof, cut) = choose_lambda(reg, &spectrum(&vals, &proj));
+    for (i, &v) in vals.iter().enumerate() {
+        proj.row_mut(i).scale_mut(filter(v, lam, cut));
+    }
+    let vmax = vals.first().copied().unwrap_or(0.0);
+    let lambda = tikhonov.then_some((lam, vmax));
+    Ok((vecs * proj, RegressionInfo { lambda, dof }))
 }
 
 /// Gamma^p K^p of eq. (14) from the estimate of C K^p (l x q): row block i, column block j
@@ -686,7 +783,7 @@ pub fn fit_with_validation(
         _ => {
             let len = stat_vector_len(&dims, StatsLayout::Plain)?;
             let mut gram = Gram::new(len, vec![0.0; packed_len(len)])?;
-            const BATCH: usize = 16;
+            const BATCH: usize = crate::linalg::GRAM_BATCH;
             let mut buf = vec![0.0; BATCH * len];
             let mut k = 0;
             while k < windows {
@@ -695,7 +792,7 @@ pub fn fit_with_validation(
                     let row = &mut buf[b * len..(b + 1) * len];
                     write_stat_vector(&dims, StatsLayout::Plain, &slab, k + b, row);
                 }
-                gram.update_batch(&buf[..nb * len], nb)?;
+                crate::linalg::gram_update_batch(&mut gram, &buf[..nb * len], nb)?;
                 k += nb;
             }
             let stats = dense(&gram, len);
@@ -860,41 +957,22 @@ fn primal_regression_svd(
     let s_ff = stats.view((0, 0), (qf, qf)).into_owned();
     let s_fy = stats.view((0, q + r), (qf, l)).into_owned();
     let syy: f64 = (0..l).map(|j| stats[(q + r + j, q + r + j)]).sum();
-    let (vals, vecs) = sym_eig(&s_ff)?;
-    let b = vecs.transpose() * &s_fy; // qf x l
-    let energy: Vec<f64> = (0..qf)
-        .map(|i| {
-            if vals[i] > 0.0 {
-                b.row(i).norm_squared() / vals[i]
-            } else {
-                0.0
-            }
-        })
-        .collect();
-    let spec = Spectrum {
-        vals: vals.clone(),
-        energy,
-        total: syy,
-        rows: windows as f64,
-    };
-    let (lam, dof, cut) = choose_lambda(opts.reg, &spec);
-    let mut scaled_b = b;
-    for (i, &v) in vals.iter().enumerate() {
-        scaled_b.row_mut(i).scale_mut(filter(v, lam, cut));
-    }
-    let theta = (vecs * scaled_b).transpose(); // l x qf
+    let (x, info) = ridge_solve(
+        &s_ff,
+        &s_fy,
+        NormalForm::Primal,
+        syy,
+        windows as f64,
+        opts.reg,
+    )?;
+    let theta = x.transpose(); // l x qf
     let ck = theta.columns(0, q).into_owned();
     let gk = gamma_k(dims, f, &ck);
     let s_zz = stats.view((0, 0), (q, q));
     let w = &gk * s_zz * gk.transpose();
     let (sv, u) = svd_left(&w)?;
     let t = u.transpose() * &gk;
-    let vmax = vals.first().copied().unwrap_or(0.0);
-    let lambda = match opts.reg {
-        Reg::None | Reg::BpdnAic | Reg::BpdnSv => None,
-        _ => Some((lam, vmax)),
-    };
-    Ok((RegressionInfo { lambda, dof }, sv, t))
+    Ok((info, sv, t))
 }
 
 /// The future window f (default p), checked.
@@ -924,43 +1002,28 @@ fn dual_states(
     if let Some(rows) = opts.kernel_rows {
         return selected_rows_states(dims, f, slab, windows, rows, opts);
     }
-    let mut g = DMatrix::<f64>::zeros(nb, nb);
-    for a in 0..nb {
-        for b in a..nb {
-            let v = dual_kernel(slab, a, slab, b, p, opts.feedthrough);
-            g[(a, b)] = v;
-            g[(b, a)] = v;
-        }
-    }
+    let g = dual_kernel_matrix(slab, p, nb, opts.feedthrough);
     let y = DMatrix::from_fn(l, nb, |j, k| slab.y(k + p)[j]);
-    let (vals, vecs) = sym_eig(&g)?;
-    let bd = vecs.transpose() * y.transpose(); // nb x l
-    let energy: Vec<f64> = (0..nb).map(|i| bd.row(i).norm_squared()).collect();
-    let spec = Spectrum {
-        vals: vals.clone(),
-        energy,
-        total: y.norm_squared(),
-        rows: nb as f64,
-    };
-    let (lam, dof, cut) = choose_lambda(opts.reg, &spec);
-    let mut scaled = bd;
-    for (i, &v) in vals.iter().enumerate() {
-        scaled.row_mut(i).scale_mut(filter(v, lam, cut));
-    }
-    let alpha = (vecs * scaled).transpose(); // l x nb
+    let (x, info) = ridge_solve(
+        &g,
+        &y.transpose(),
+        NormalForm::Dual,
+        y.norm_squared(),
+        nb as f64,
+        opts.reg,
+    )?;
+    let alpha = x.transpose(); // l x nb
     let gkz = dual_gamma_kz_matrix(dims, f, slab, &alpha, nb + 1);
     let (sv, x) = states_from_gkz(&gkz, nb)?;
-    let vmax = vals.first().copied().unwrap_or(0.0);
-    let lambda = match opts.reg {
-        Reg::None | Reg::BpdnAic | Reg::BpdnSv => None,
-        _ => Some((lam, vmax)),
-    };
-    Ok((sv, x, RegressionInfo { lambda, dof }))
+    Ok((sv, x, info))
 }
 
-/// Sparse path (sparse paper section 4.2): [C K^p, D] by the group-lasso path with the
-/// BPDN-AIC or BPDN-SV rule on explicit regressors, then Gamma^p K^p by eq. (14), the SVD
-/// of Gamma K Z over the training windows and the state candidates for windows 0..=N-p.
+/// Sparse path (sparse paper section 4.2): [C K^p, D] by the group-lasso path of (33) on
+/// explicit regressors. BPDN-AIC: the point of rule (34), then Gamma^p K^p Z by eq. (14),
+/// the SVD (15) and the state candidates (16) for windows 0..=N-p. BPDN-SV: the point and
+/// the order whose realized model simulates best ([`bpdn::select_by_simulation`]); the
+/// chosen order is returned with its reason.
+#[allow(clippy::type_complexity)]
 fn bpdn_states(
     dims: &PbsidDims,
     f: usize,
@@ -1178,40 +1241,22 @@ fn selected_rows_states(
     let y = DMatrix::from_fn(l, nb, |j, k| slab.y(k + p)[j]);
     let s_ff = &kd * kd.transpose();
     let s_fy = &kd * y.transpose();
-    let (vals, vecs) = sym_eig(&s_ff)?;
-    let b = vecs.transpose() * &s_fy;
-    let spec = Spectrum {
-        energy: (0..m)
-            .map(|i| {
-                if vals[i] > 0.0 {
-                    b.row(i).norm_squared() / vals[i]
-                } else {
-                    0.0
-                }
-            })
-            .collect(),
-        vals: vals.clone(),
-        total: y.norm_squared(),
-        rows: nb as f64,
-    };
-    let (lam, dof, cut) = choose_lambda(opts.reg, &spec);
-    let mut sb = b;
-    for (i, &v) in vals.iter().enumerate() {
-        sb.row_mut(i).scale_mut(filter(v, lam, cut));
-    }
-    let alpha_d = (vecs * sb).transpose(); // l x m
+    let (x, info) = ridge_solve(
+        &s_ff,
+        &s_fy,
+        NormalForm::Primal,
+        y.norm_squared(),
+        nb as f64,
+        opts.reg,
+    )?;
+    let alpha_d = x.transpose(); // l x m
     let mut alpha = DMatrix::zeros(l, nb);
     for (a, &w) in rows.iter().enumerate() {
         alpha.set_column(w, &alpha_d.column(a));
     }
     let gkz = dual_gamma_kz_matrix(dims, f, slab, &alpha, nb + 1);
     let (sv, x) = states_from_gkz(&gkz, nb)?;
-    let vmax = vals.first().copied().unwrap_or(0.0);
-    let lambda = match opts.reg {
-        Reg::None | Reg::BpdnAic | Reg::BpdnSv => None,
-        _ => Some((lam, vmax)),
-    };
-    Ok((sv, x, RegressionInfo { lambda, dof }))
+    Ok((sv, x, info))
 }
 
 /// Eq. (25): row block i of Gamma^p K^p Z is alpha sum_{j >= i} (Z^{i,j})^T Z^{1,j}. Entry
@@ -1227,53 +1272,56 @@ pub fn dual_gamma_kz_matrix(
 ) -> DMatrix<f64> {
     let (p, l) = (dims.p, dims.l);
     let nb = alpha.ncols();
-    let nz = dims.nz();
-    let n_samples = slab.len();
-    // Gram matrices of mu and z over all samples (Lemma 9: products of these).
-    let gmu = DMatrix::from_fn(n_samples, n_samples, |a, b| {
-        lpvid::real::dot(slab.mu(a), slab.mu(b))
-    });
-    let gz = DMatrix::from_fn(n_samples, n_samples, |a, b| {
-        lpvid::real::dot(&slab.z(a)[..nz], &slab.z(b)[..nz])
-    });
+    // alpha row by row, contiguous
+    let alpha_rows: Vec<Vec<f64>> = (0..l)
+        .map(|j| alpha.row(j).iter().copied().collect())
+        .collect();
     let mut out = DMatrix::zeros(f * l, cols);
-    let mut ks = vec![0.0; p];
-    // window start s of the shifted window, from -(p-1) to nb-1
-    for s in -(p as isize - 1)..(nb as isize) {
-        for b in 0..cols {
-            let mut acc = 0.0;
-            let mut prod = 1.0;
-            for t in (0..p).rev() {
-                let sa = s + t as isize;
-                if sa < 0 {
-                    // t0 < -s never contributes for any valid i
-                    for v in ks[..=t].iter_mut() {
-                        *v = f64::NAN;
-                    }
-                    break;
+    let mut sweep = KernelSweep::new(slab, p);
+    // window starts s = -(p-1) .. nb-1; row block i = t + 1 pairs window a with s = a - t
+    let s0 = -(p as isize - 1);
+    for b in 0..cols {
+        sweep.window(b, s0, nb + p - 1, |t, ks| {
+            if t < f {
+                let k = &ks[p - 1 - t..p - 1 - t + nb];
+                for (j, ar) in alpha_rows.iter().enumerate() {
+                    out[(t * l + j, b)] = dot4(ar, k);
                 }
-                let sa = sa as usize;
-                prod *= gmu[(sa, b + t)];
-                acc += prod * gz[(sa, b + t)];
-                ks[t] = acc;
             }
-            for i in 1..=f {
-                let a = s + i as isize - 1;
-                if a < 0 || a >= nb as isize {
-                    continue;
-                }
-                let kv = ks[i - 1];
-                if kv.is_nan() || kv == 0.0 {
-                    continue;
-                }
-                let a = a as usize;
-                for j in 0..l {
-                    out[((i - 1) * l + j, b)] += alpha[(j, a)] * kv;
-                }
+        });
+    }
+    out
+}
+
+/// The dual kernel of (19), [Z^T Z + U^T U] over windows 0..nb (the U^T U term only with
+/// feedthrough), by Theorem 10 for all pairs ([`KernelSweep`]).
+pub fn dual_kernel_matrix(
+    slab: &Slab<'_, f64>,
+    p: usize,
+    nb: usize,
+    feedthrough: bool,
+) -> DMatrix<f64> {
+    let mut g = DMatrix::<f64>::zeros(nb, nb);
+    let mut sweep = KernelSweep::new(slab, p);
+    for b in 0..nb {
+        sweep.window(b, 0, b + 1, |t, ks| {
+            if t == 0 {
+                g.view_mut((0, b), (b + 1, 1)).copy_from_slice(ks);
+            }
+        });
+        if feedthrough {
+            let ub = slab.u(b + p);
+            for a in 0..=b {
+                g[(a, b)] += lpvid::real::dot(slab.u(a + p), ub);
             }
         }
     }
-    out
+    for b in 0..nb {
+        for a in 0..b {
+            g[(b, a)] = g[(a, b)];
+        }
+    }
+    g
 }
 
 /// Section 4.3, output equation: C and D from the normal equations of

@@ -509,7 +509,7 @@ pub fn moments(
         })
         .collect();
     let mut g = Gram::new(d, vec![0.0; packed_len(d)]).map_err(|e| e.to_string())?;
-    const BATCH: usize = 32;
+    const BATCH: usize = crate::linalg::GRAM_BATCH;
     let mut batch = vec![0.0; BATCH * d];
     let mut k = 0;
     while k < rows {
@@ -521,7 +521,7 @@ pub fn moments(
                 *v *= s;
             }
         }
-        g.update_batch(&batch[..nb * d], nb)
+        crate::linalg::gram_update_batch(&mut g, &batch[..nb * d], nb)
             .map_err(|e| e.to_string())?;
         k += nb;
     }

@@ -1,0 +1,205 @@
+//! Theorem 10 of the kernel paper (section 5) for every pair of windows at once: the batch
+//! form of `lpvid::kernel::theorem10`, organised so that the dual kernel Z^T Z + U^T U of
+//! (19) and the shifted kernels of eq. (25) cost O(N^2 p) vectorised multiply-adds.
+//!
+//! Lemma 9 writes an entry as sums of products of the inner products mu_a^T mu_b and
+//! z_a^T z_b. For a fixed window b those products are needed at samples b, ..., b+p-1 only,
+//! so the sweep keeps a ring of p columns of the two sample Gram matrices (each computed
+//! once, O(N (m + r + l))) and runs the backward recursion of Theorem 10 for all window
+//! starts s together, contiguous in memory. The per-entry `theorem10` stays the definition
+//! (the streaming dictionary uses it); a test checks the two agree.
+
+use lpvid::{Samples, Slab};
+
+/// Sweeps Theorem 10 over all window starts for one window b at a time.
+pub struct KernelSweep {
+    p: usize,
+    n: usize,
+    /// Component j of mu_k at mu[j * n + k] (feature-major, so a Gram column is a sum of
+    /// m scaled rows).
+    mu: Vec<f64>,
+    /// Component j of z_k = [u_k; y_k] at z[j * n + k].
+    z: Vec<f64>,
+    /// Ring of p columns of the sample Gram matrices: slot c % p holds column c.
+    gmu: Vec<Vec<f64>>,
+    gz: Vec<Vec<f64>>,
+    /// Columns held by the ring: [lo, hi).
+    held: (usize, usize),
+    prod: Vec<f64>,
+    acc: Vec<f64>,
+}
+
+impl KernelSweep {
+    /// Prepare the sweep over the samples of `slab` for past window `p`.
+    pub fn new(slab: &Slab<'_, f64>, p: usize) -> Self {
+        let n = slab.len();
+        let m = if n > 0 { slab.mu(0).len() } else { 0 };
+        let nz = if n > 0 { slab.z(0).len() } else { 0 };
+        let mut mu = vec![0.0; n * m];
+        let mut z = vec![0.0; n * nz];
+        for k in 0..n {
+            for (j, &v) in slab.mu(k).iter().enumerate() {
+                mu[j * n + k] = v;
+            }
+            for (j, &v) in slab.z(k).iter().enumerate() {
+                z[j * n + k] = v;
+            }
+        }
+        KernelSweep {
+            p,
+            n,
+            mu,
+            z,
+            gmu: vec![vec![0.0; n]; p.max(1)],
+            gz: vec![vec![0.0; n]; p.max(1)],
+            held: (0, 0),
+            prod: Vec::new(),
+            acc: Vec::new(),
+        }
+    }
+
+    /// Column c of the sample Gram matrices into ring slot c % p.
+    fn compute_column(&mut self, c: usize) {
+        let slot = c % self.p;
+        let n = self.n;
+        for (feat, g) in [
+            (&self.mu, &mut self.gmu[slot]),
+            (&self.z, &mut self.gz[slot]),
+        ] {
+            g.fill(0.0);
+            for row in feat.chunks_exact(n) {
+                let w = row[c];
+                for (gv, &x) in g.iter_mut().zip(row) {
+                    *gv += x * w;
+                }
+            }
+        }
+    }
+
+    /// Make columns b..b+p of the sample Gram matrices available.
+    fn hold(&mut self, b: usize) {
+        let want = (b, b + self.p);
+        let (lo, hi) = self.held;
+        let start = if lo <= b && b <= hi { hi } else { b };
+        for c in start..want.1 {
+            self.compute_column(c);
+        }
+        self.held = want;
+    }
+
+    /// Theorem 10 between the windows starting at s = s0, ..., s0 + len - 1 (s may be
+    /// negative) and window `b`: after the step for t (t = p-1 down to 0) `visit(t, ks)`
+    /// sees ks[s - s0] = theorem10(slab, s, slab, b, t, p), the kernel of row block t + 1
+    /// of eq. (25) (t = 0: Z^T Z). Entries whose window reaches before sample 0 at step t
+    /// (s + t < 0) are left undefined there; no row block uses them.
+    ///
+    /// Needs b + p <= number of samples.
+    pub fn window(
+        &mut self,
+        b: usize,
+        s0: isize,
+        len: usize,
+        mut visit: impl FnMut(usize, &[f64]),
+    ) {
+        let p = self.p;
+        assert!(b + p <= self.n, "window {b} needs {p} samples");
+        self.hold(b);
+        self.prod.clear();
+        self.prod.resize(len, 1.0);
+        self.acc.clear();
+        self.acc.resize(len, 0.0);
+        let n = self.n as isize;
+        for t in (0..p).rev() {
+            let c = b + t;
+            let slot = c % p;
+            // indices with 0 <= s0 + idx + t < n
+            let first = s0 + t as isize;
+            let lo = (-first).clamp(0, len as isize) as usize;
+            let hi = (n - first).clamp(lo as isize, len as isize) as usize;
+            for v in &mut self.prod[..lo] {
+                *v = 0.0;
+            }
+            if hi > lo {
+                let row0 = (first + lo as isize) as usize;
+                let g = &self.gmu[slot][row0..row0 + (hi - lo)];
+                let h = &self.gz[slot][row0..row0 + (hi - lo)];
+                for (((pr, ac), &gv), &hv) in self.prod[lo..hi]
+                    .iter_mut()
+                    .zip(self.acc[lo..hi].iter_mut())
+                    .zip(g)
+                    .zip(h)
+                {
+                    *pr *= gv;
+                    *ac += *pr * hv;
+                }
+            }
+            visit(t, &self.acc);
+        }
+    }
+}
+
+/// Dot product of two equal-length slices in four independent lanes (vectorises).
+pub fn dot4(a: &[f64], b: &[f64]) -> f64 {
+    let mut s = [0.0f64; 4];
+    let (ca, ra) = a.split_at(a.len() / 4 * 4);
+    let (cb, rb) = b.split_at(ca.len());
+    for (x, y) in ca.chunks_exact(4).zip(cb.chunks_exact(4)) {
+        for k in 0..4 {
+            s[k] += x[k] * y[k];
+        }
+    }
+    let tail: f64 = ra.iter().zip(rb).map(|(x, y)| x * y).sum();
+    (s[0] + s[1]) + (s[2] + s[3]) + tail
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use lpvid::kernel::theorem10;
+
+    #[test]
+    fn sweep_equals_theorem10_entry_by_entry() {
+        let (r, l, m, p) = (1, 2, 3, 4);
+        let n = 23;
+        let mut data = Vec::new();
+        for k in 0..n {
+            let f = k as f64;
+            data.extend([
+                (0.7 * f).sin(),
+                (1.3 * f).cos(),
+                0.2 * f - 1.0,
+                1.0,
+                (0.4 * f).sin(),
+                0.1 * f - 0.5,
+            ]);
+        }
+        let slab = Slab::new(&data, r, l, m).unwrap();
+        let mut sw = KernelSweep::new(&slab, p);
+        let s0 = -(p as isize - 1);
+        let len = n - p + p - 1;
+        // visit windows out of order too, so the ring is rebuilt
+        for b in [0usize, 1, 2, 7, 8, 3, n - p] {
+            sw.window(b, s0, len, |t, ks| {
+                for (idx, &k) in ks.iter().enumerate() {
+                    let s = s0 + idx as isize;
+                    if s + (t as isize) < 0 || s + p as isize > n as isize {
+                        continue;
+                    }
+                    let e = theorem10(&slab, s, &slab, b, t, p);
+                    assert!(
+                        (e - k).abs() <= 1e-12 * (1.0 + e.abs()),
+                        "{b} {s} {t}: {e} {k}"
+                    );
+                }
+            });
+        }
+    }
+
+    #[test]
+    fn dot4_matches_plain_sum() {
+        let a: Vec<f64> = (0..11).map(|k| k as f64 * 0.5 - 2.0).collect();
+        let b: Vec<f64> = (0..11).map(|k| (k as f64).sin()).collect();
+        let e: f64 = a.iter().zip(&b).map(|(x, y)| x * y).sum();
+        assert!((dot4(&a, &b) - e).abs() < 1e-12);
+    }
+}
