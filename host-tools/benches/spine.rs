@@ -67,25 +67,45 @@ fn stats_update<T: Real>(c: &mut Criterion, name: &str) {
         let mut gram = Gram::new(len, vec![T::ZERO; packed_len(len)]).unwrap();
         let mut buf = vec![T::ZERO; 16 * len];
         let mut k0 = 0usize;
+        let mut fill = |buf: &mut [T]| {
+            for i in 0..16 {
+                let k = (k0 + i) % (data.len() - p - 1);
+                lpvid::write_stat_vector(
+                    &dims,
+                    StatsLayout::Plain,
+                    &slab,
+                    k,
+                    &mut buf[i * len..(i + 1) * len],
+                );
+            }
+            k0 += 16;
+        };
         group.bench_function(
             BenchmarkId::new("host batched update (per 16 samples)", format!("B1 p={p}")),
             |b| {
                 b.iter(|| {
-                    for i in 0..16 {
-                        let k = (k0 + i) % (data.len() - p - 1);
-                        lpvid::write_stat_vector(
-                            &dims,
-                            StatsLayout::Plain,
-                            &slab,
-                            k,
-                            &mut buf[i * len..(i + 1) * len],
-                        );
-                    }
-                    k0 += 16;
+                    fill(&mut buf);
                     gram.update_batch(&buf, 16).unwrap();
                 })
             },
         );
+        // the same core code compiled for AVX2, as the host dispatches it
+        #[cfg(target_arch = "x86_64")]
+        if std::is_x86_feature_detected!("avx2") {
+            group.bench_function(
+                BenchmarkId::new(
+                    "host batched update, AVX2 build (per 16 samples)",
+                    format!("B1 p={p}"),
+                ),
+                |b| {
+                    b.iter(|| {
+                        fill(&mut buf);
+                        // SAFETY: AVX2 support checked above.
+                        unsafe { gram.update_batch_avx2(&buf, 16).unwrap() };
+                    })
+                },
+            );
+        }
     }
     group.finish();
 }
@@ -106,6 +126,58 @@ fn full_fit(c: &mut Criterion) {
             |b| b.iter(|| black_box(fit(&exp.train, &o).unwrap().order)),
         );
     }
+    group.finish();
+}
+
+/// The ridge step of the kernel form at B1 p = 5 (995 x 995 kernel): the full symmetric
+/// eigendecomposition GCV used before against the tridiagonal reduction that replaced it
+/// (`linalg::Tridiagonal`: reduction, targets, largest eigenvalue, 100 GCV evaluations and
+/// the solve), same kernel, same run.
+fn ridge_step(c: &mut Criterion) {
+    use lpvid_host::linalg::{sym_eig, Tridiagonal};
+    let exp = systems::b1(1000, 0.05, 1);
+    let p = 5;
+    let rows: Vec<f64> = (0..exp.train.len())
+        .flat_map(|k| {
+            let mut r: Vec<f64> = exp.train.u.row(k).iter().copied().collect();
+            r.extend(exp.train.y.row(k).iter());
+            r.push(1.0);
+            r.extend(exp.train.p.row(k).iter().map(|v| 0.2 * v));
+            r
+        })
+        .collect();
+    let (r, l, m) = (
+        exp.train.u.ncols(),
+        exp.train.y.ncols(),
+        exp.train.p.ncols() + 1,
+    );
+    let slab = lpvid::Slab::new(&rows, r, l, m).unwrap();
+    let nb = exp.train.len() - p;
+    let g = lpvid_host::pbsid::dual_kernel_matrix(&slab, p, nb, true);
+    let y = nalgebra::DMatrix::from_fn(nb, l, |k, j| exp.train.y[(k + p, j)]);
+    let mut group = c.benchmark_group("ridge_step_B1_p5_kernel995");
+    group.sample_size(10);
+    group.bench_function("full eigendecomposition (before)", |b| {
+        b.iter(|| black_box(sym_eig(&g).unwrap().0[0]))
+    });
+    group.bench_function("tridiagonal + O(n) GCV + solve (now)", |b| {
+        b.iter(|| {
+            let t = Tridiagonal::new(&g);
+            let bt = t.to_tridiagonal(&y);
+            let vmax = t.largest_eigenvalue();
+            let mut best = (f64::INFINITY, 0.0);
+            for e in 0..100 {
+                let lam = vmax * 10f64.powf(-12.0 + 0.13 * e as f64);
+                if let Some((xx, tr)) = t.shifted_norm_trace(lam, &bt) {
+                    let gcv = lam * lam * xx / (lam * tr).powi(2);
+                    if gcv < best.0 {
+                        best = (gcv, lam);
+                    }
+                }
+            }
+            black_box(t.from_tridiagonal(&t.solve_shifted(best.1, &bt)))
+        })
+    });
     group.finish();
 }
 
@@ -132,6 +204,7 @@ fn benches(c: &mut Criterion) {
     stats_update::<f32>(c, "f32");
     stats_update::<f64>(c, "f64");
     full_fit(c);
+    ridge_step(c);
     bpdn_fit(c);
 }
 
