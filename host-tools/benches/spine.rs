@@ -187,7 +187,7 @@ fn bpdn_fit(c: &mut Criterion) {
     let exp = systems::b2(75, 25.0, 1);
     let mut group = c.benchmark_group("bpdn_sv_fit_B2_N75");
     group.sample_size(10);
-    for p in [5usize, 8, 10, 12] {
+    for p in [5usize, 8, 10, 12, 14] {
         for reg in [Reg::BpdnSv, Reg::TikhonovGcv] {
             let mut o = PbsidOptions::new(p);
             o.reg = reg;

@@ -1,0 +1,70 @@
+//! Monte-Carlo of the sparse estimate (sparse paper section 5): mean, minimum and fit time
+//! of the free-run VAF on the noise-free validation data over seeded runs, per past window.
+//!
+//! ```text
+//! cargo run --release -p lpvid-host --example bpdn_montecarlo -- [b2|b3] [sv|aic|tik|none] [RUNS] [P,P,...]
+//! ```
+//!
+//! b2: Example I (N = 75, 25 dB), b3: Example II (N = 250); defaults b2 sv 20 3..14.
+//! `REFINE=1` adds the output-error refinement (`--refine`). The acceptance test
+//! `tests/acceptance_bpdn.rs` runs the smaller version of this (B2 20 runs, B3 10 runs).
+
+use std::time::Instant;
+
+use lpvid_host::metrics::{mean, vaf_per_output};
+use lpvid_host::pbsid::{fit, PbsidOptions, Reg};
+use lpvid_host::systems;
+
+fn main() {
+    let args: Vec<String> = std::env::args().collect();
+    let sys = args.get(1).map(String::as_str).unwrap_or("b2");
+    let reg = match args.get(2).map(String::as_str).unwrap_or("sv") {
+        "sv" => Reg::BpdnSv,
+        "aic" => Reg::BpdnAic,
+        "tik" => Reg::TikhonovGcv,
+        _ => Reg::None,
+    };
+    let runs: u64 = args.get(3).and_then(|s| s.parse().ok()).unwrap_or(20);
+    let ps: Vec<usize> = args
+        .get(4)
+        .map(|s| s.split(',').filter_map(|v| v.parse().ok()).collect())
+        .unwrap_or_else(|| (3..=14).collect());
+    let refine = std::env::var("REFINE").is_ok();
+    println!(
+        "{sys}, {reg:?}, {runs} runs{}",
+        if refine { ", refined" } else { "" }
+    );
+    println!("   p   mean VAF   min VAF   fit ms   orders");
+    for p in ps {
+        let mut vafs = Vec::new();
+        let mut orders = Vec::new();
+        let t = Instant::now();
+        for seed in 0..runs {
+            let e = if sys == "b3" {
+                systems::b3(250, seed)
+            } else {
+                systems::b2(75, 25.0, seed)
+            };
+            let mut o = PbsidOptions::new(p);
+            o.reg = reg;
+            o.refine = refine;
+            match fit(&e.train, &o) {
+                Ok(f) => {
+                    orders.push(f.order);
+                    let yh = f.model.simulate(&e.val, None);
+                    vafs.push(mean(&vaf_per_output(&e.val.y, &yh, 0)));
+                }
+                Err(err) => {
+                    eprintln!("p = {p}, seed {seed}: {err}");
+                    vafs.push(0.0);
+                }
+            }
+        }
+        let ms = t.elapsed().as_secs_f64() * 1e3 / runs as f64;
+        let min = vafs.iter().copied().fold(f64::INFINITY, f64::min);
+        println!(
+            "  {p:2}   {:8.2}   {min:7.2}   {ms:6.1}   {orders:?}",
+            mean(&vafs)
+        );
+    }
+}
