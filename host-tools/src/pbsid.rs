@@ -21,7 +21,6 @@ use crate::bpdn;
 use crate::kernel_sweep::{dot4, KernelSweep};
 use crate::linalg::{min_norm_from_normal, sym_eig, Tridiagonal};
 use crate::lpvss::{LpvSs, Signals};
-use lpvid::lasso::SymMatrix;
 
 /// Regularisation of problem (13).
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -772,11 +771,13 @@ pub fn fit_with_validation(
         _ => None,
     };
     let mut solver_reason = solver_reason;
+    let mut sparse_order = None;
     let (sv, x, reg) = match solver {
         _ if sparse => {
-            let (sv, x, reg, why) =
+            let (sv, x, reg, why, order) =
                 bpdn_states(&dims, f, &slab, windows, val_rows.as_deref(), opts)?;
             solver_reason = format!("sparse form with explicit regressors ({why})");
+            sparse_order = order;
             (sv, x, reg)
         }
         Solver::Dual => dual_states(&dims, f, &slab, windows, opts)?,
@@ -806,7 +807,10 @@ pub fn fit_with_validation(
             (sv, x, reg)
         }
     };
-    let (order, order_reason) = choose_order(&sv, windows, opts)?;
+    let (order, order_reason) = match sparse_order {
+        Some(chosen) => chosen,
+        None => choose_order(&sv, windows, opts)?,
+    };
     let states = x.rows(0, order).into_owned();
     let scaled = realize_from_states(&dims, &slab, &states, opts.feedthrough)?;
     let mut model = unscale(&scaled, &scaling);
@@ -1031,119 +1035,92 @@ fn bpdn_states(
     windows: usize,
     val_rows: Option<&[f64]>,
     opts: &PbsidOptions,
-) -> Result<(Vec<f64>, DMatrix<f64>, RegressionInfo, String), FitError> {
+) -> Result<
+    (
+        Vec<f64>,
+        DMatrix<f64>,
+        RegressionInfo,
+        String,
+        Option<(usize, String)>,
+    ),
+    FitError,
+> {
     let (p, l) = (dims.p, dims.l);
-    let q = dims.q()?;
-    let rule = match opts.reg {
-        Reg::BpdnAic => bpdn::Rule::Aic,
-        _ => bpdn::Rule::Sv,
-    };
-    let val_slab = match val_rows {
-        Some(rows) => Some(Slab::new(rows, dims.r, dims.l, dims.m())?),
-        None => None,
-    };
-    // identification and validation windows
-    let (id_windows, val_windows): (Vec<usize>, Vec<usize>) = match (rule, &val_slab) {
-        (bpdn::Rule::Sv, Some(vs)) => {
-            if vs.len() < p + 2 {
-                return Err(FitError(
-                    "the validation data are shorter than the window".into(),
-                ));
+    let all: Vec<usize> = (0..windows).collect();
+    let (g, y) = bpdn::LazyGram::build(dims, slab, &all, opts.feedthrough)?;
+    if opts.reg == Reg::BpdnSv {
+        let val_slab = match val_rows {
+            Some(rows) => {
+                let vs = Slab::new(rows, dims.r, dims.l, dims.m())?;
+                if vs.len() < p + 2 {
+                    return Err(FitError(
+                        "the validation data are shorter than the window".into(),
+                    ));
+                }
+                Some(vs)
             }
-            ((0..windows).collect(), (0..vs.len() - p).collect())
-        }
-        (bpdn::Rule::Sv, None) => {
-            // the first three quarters identify, windows inside the last quarter validate
-            let n_id = (3 * slab.len()) / 4;
-            let id: Vec<usize> = (0..windows).filter(|k| k + p < n_id).collect();
-            let val: Vec<usize> = (0..windows).filter(|&k| k >= n_id).collect();
-            (id, val)
-        }
-        (bpdn::Rule::Aic, _) => ((0..windows).collect(), vec![]),
-    };
-    if id_windows.len() < 2 || (rule == bpdn::Rule::Sv && val_windows.len() < 2) {
-        return Err(FitError(format!(
-            "{} identification and {} validation windows: too few samples for BPDN with a past window of {p}",
-            id_windows.len(),
-            val_windows.len()
-        )));
+            None => None,
+        };
+        let orders: Vec<usize> = match opts.order {
+            Order::Fixed(n) => vec![n],
+            Order::Auto => (1..=opts.max_order.min(f * l).min(windows / 2).max(1)).collect(),
+        };
+        let sel = bpdn::select_by_simulation(
+            dims,
+            f,
+            &g,
+            &y,
+            slab,
+            val_slab.as_ref(),
+            &orders,
+            opts.feedthrough,
+        )?;
+        let info = RegressionInfo {
+            lambda: Some((sel.lambda, 1.0)),
+            dof: sel.active as f64,
+        };
+        let why = match opts.order {
+            Order::Fixed(n) => format!("order {n} given"),
+            Order::Auto => format!(
+                "order {} realizes the model with the best free-run score on the BPDN-SV path",
+                sel.order
+            ),
+        };
+        return Ok((
+            sel.singular_values,
+            sel.states,
+            info,
+            sel.reason,
+            Some((sel.order, why)),
+        ));
     }
-    let (id, y_id) = bpdn::LazyGram::build(dims, slab, &id_windows, opts.feedthrough)?;
-    let val = match rule {
-        bpdn::Rule::Sv => {
-            let src = val_slab.as_ref().unwrap_or(slab);
-            Some(bpdn::LazyGram::build(
-                dims,
-                src,
-                &val_windows,
-                opts.feedthrough,
-            )?)
-        }
-        bpdn::Rule::Aic => None,
-    };
     // residual of the unregularised (minimum-norm) solution, for rule (34), from the kernel
-    let rss_unreg = if rule == bpdn::Rule::Aic {
-        let nid = id_windows.len();
-        let g = DMatrix::from_fn(nid, nid, |a, b| {
-            dual_kernel(
-                slab,
-                id_windows[a],
-                slab,
-                id_windows[b],
-                p,
-                opts.feedthrough,
-            )
+    let rss_unreg = {
+        let g = DMatrix::from_fn(windows, windows, |a, b| {
+            dual_kernel(slab, a, slab, b, p, opts.feedthrough)
         });
         let (vals, vecs) = sym_eig(&g)?;
-        let y = DMatrix::from_row_slice(l, nid, &y_id);
-        let bd = vecs.transpose() * y.transpose();
+        let yv = DMatrix::from_row_slice(l, windows, &y);
+        let bd = vecs.transpose() * yv.transpose();
         let spec = Spectrum {
-            energy: (0..nid).map(|i| bd.row(i).norm_squared()).collect(),
+            energy: (0..windows).map(|i| bd.row(i).norm_squared()).collect(),
             vals,
-            total: y.norm_squared(),
-            rows: nid as f64,
+            total: yv.norm_squared(),
+            rows: windows as f64,
         };
         let vmax = spec.vals.iter().copied().fold(0.0, f64::max);
         spec.rss_dof(0.0, vmax * RANK_TOL).0
-    } else {
-        0.0
     };
-    let sel = bpdn::select(
-        &id,
-        &y_id,
-        l,
-        rule,
-        val.as_ref().map(|(g, y)| (g, y.as_slice())),
-        rss_unreg,
-    )?;
-    let qf = id.dim();
-    let mut theta = sel.theta.clone();
-    let mut reason = sel.reason.clone();
-    if rule == bpdn::Rule::Sv && val_slab.is_none() {
-        // the penalty was chosen on the split; estimate with it on every window (the loss
-        // is a sum over windows, so lambda scales with their number)
-        let all: Vec<usize> = (0..windows).collect();
-        let (g_all, y_all) = bpdn::LazyGram::build(dims, slab, &all, opts.feedthrough)?;
-        let lam = sel.lambda_abs * windows as f64 / id_windows.len() as f64;
-        let active = bpdn::solve_at(&g_all, &y_all, l, lam, &mut theta)?;
-        reason.push_str(&format!(
-            "; refit on all {windows} windows at that penalty: {active} active columns"
-        ));
-    }
-    let ck = DMatrix::from_fn(l, q, |o, j| theta[o * qf + j]);
-    let gk = gamma_k(dims, f, &ck);
-    let mut gkz = DMatrix::zeros(f * l, windows + 1);
-    let mut z = vec![0.0; q];
-    for k in 0..=windows {
-        write_pbsid_regressor(dims, slab, k, &mut z);
-        gkz.set_column(k, &(&gk * DVector::from_column_slice(&z)));
-    }
+    let sel = bpdn::select(&g, &y, l, bpdn::Rule::Aic, None, rss_unreg)?;
+    let mut z_last = vec![0.0; dims.q()?];
+    write_pbsid_regressor(dims, slab, windows, &mut z_last);
+    let gkz = bpdn::gamma_kz(dims, f, &sel.theta, &g, &z_last);
     let (sv, x) = states_from_gkz(&gkz, windows)?;
     let info = RegressionInfo {
         lambda: Some((sel.lambda, 1.0)),
         dof: sel.active as f64,
     };
-    Ok((sv, x, info, reason))
+    Ok((sv, x, info, sel.reason, None))
 }
 
 /// Algorithm 3 (kernel selection): the dictionary of windows the core admits by its
