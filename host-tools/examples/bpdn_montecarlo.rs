@@ -2,24 +2,36 @@
 //! of the free-run VAF on the noise-free validation data over seeded runs, per past window.
 //!
 //! ```text
-//! cargo run --release -p lpvid-host --example bpdn_montecarlo -- [b2|b3] [sv|aic|tik|none] [RUNS] [P,P,...]
+//! cargo run --release -p lpvid-host --example bpdn_montecarlo -- [b2|b3] [sv|sv-paper|aic|tik|none] [RUNS] [P,P,...]
 //! ```
 //!
 //! b2: Example I (N = 75, 25 dB), b3: Example II (N = 250); defaults b2 sv 20 3..14.
+//! `sv-paper` is BPDN-SV with the paper's one-step score (`--bpdn-score paper`); `ORDER=n`
+//! fixes the order (default: automatic).
 //! `REFINE=1` adds the output-error refinement (`--refine`). The acceptance test
 //! `tests/acceptance_bpdn.rs` runs the smaller version of this (B2 20 runs, B3 10 runs).
 
 use std::time::Instant;
 
 use lpvid_host::metrics::{mean, vaf_per_output};
-use lpvid_host::pbsid::{fit, PbsidOptions, Reg};
+use lpvid_host::pbsid::{fit, BpdnScore, Order, PbsidOptions, Reg};
 use lpvid_host::systems;
 
 fn main() {
     let args: Vec<String> = std::env::args().collect();
     let sys = args.get(1).map(String::as_str).unwrap_or("b2");
-    let reg = match args.get(2).map(String::as_str).unwrap_or("sv") {
-        "sv" => Reg::BpdnSv,
+    let rule = args.get(2).map(String::as_str).unwrap_or("sv");
+    let score = if rule == "sv-paper" {
+        BpdnScore::OneStep
+    } else {
+        BpdnScore::Simulation
+    };
+    let order = match std::env::var("ORDER").ok().and_then(|v| v.parse().ok()) {
+        Some(n) => Order::Fixed(n),
+        None => Order::Auto,
+    };
+    let reg = match rule {
+        "sv" | "sv-paper" => Reg::BpdnSv,
         "aic" => Reg::BpdnAic,
         "tik" => Reg::TikhonovGcv,
         _ => Reg::None,
@@ -31,7 +43,7 @@ fn main() {
         .unwrap_or_else(|| (3..=14).collect());
     let refine = std::env::var("REFINE").is_ok();
     println!(
-        "{sys}, {reg:?}, {runs} runs{}",
+        "{sys}, {reg:?} ({score:?} score), order {order:?}, {runs} runs{}",
         if refine { ", refined" } else { "" }
     );
     println!("   p   mean VAF   min VAF   fit ms   orders");
@@ -48,6 +60,8 @@ fn main() {
             let mut o = PbsidOptions::new(p);
             o.reg = reg;
             o.refine = refine;
+            o.bpdn_score = score;
+            o.order = order;
             match fit(&e.train, &o) {
                 Ok(f) => {
                     orders.push(f.order);

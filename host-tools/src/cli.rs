@@ -12,7 +12,7 @@ use crate::data::{DataError, Dataset};
 use crate::metrics::{bfr_per_output, mean, vaf_per_output};
 use crate::model::{ModelFile, ModelKind, SignalMap};
 use crate::observer::{self, ObserverRequest};
-use crate::pbsid::{self, Order, PbsidFit, PbsidOptions, Reg, Solver};
+use crate::pbsid::{self, BpdnScore, Order, PbsidFit, PbsidOptions, Reg, Solver};
 use crate::simulate::{simulate, Mode};
 
 /// lpvid: identify Linear Parameter-Varying systems from data.
@@ -88,9 +88,17 @@ struct PbsidArgs {
     #[arg(long)]
     refine: bool,
     /// Regularisation of the regression: none (minimum norm), tikhonov-gcv, or sparse
-    /// bpdn-aic / bpdn-sv (BPDN-SV scores on --val, else on the last quarter of --train).
+    /// bpdn-aic / bpdn-sv (how BPDN-SV scores its path: --bpdn-score).
     #[arg(long, default_value = "tikhonov-gcv")]
     reg: Reg,
+    /// How --reg bpdn-sv scores the points of its lasso path: simulation (default; the
+    /// free-run simulation of each point's realized model on --val, else on the whole
+    /// training record with an AIC order penalty, which also picks the order) or paper (the
+    /// sparse paper's Algorithm 1: one-step prediction error on --val, else on the last
+    /// quarter of --train with the path on the first three quarters; the order then from
+    /// the singular values). Only with --reg bpdn-sv.
+    #[arg(long, value_name = "simulation|paper")]
+    bpdn_score: Option<BpdnScore>,
     /// Observer gain: ls (least squares K from the innovation estimates) or hinf (the
     /// H-infinity LMI (30) of the sparse paper over the vertices of the scheduling box, gains
     /// (31); if it fails the least-squares gain is kept and the summary says why).
@@ -253,6 +261,7 @@ fn fit_record(
         "order_reason": fit.order_reason,
         "max_order": opts.max_order,
         "reg": reg_name(opts.reg),
+        "bpdn_score": (opts.reg == Reg::BpdnSv).then(|| opts.bpdn_score.name()),
         "lambda": fit.lambda,
         "effective_parameters": fit.dof,
         "solver": fit.solver.name(),
@@ -352,6 +361,7 @@ fn pbsid_options(a: &PbsidArgs) -> PbsidOptions {
     o.kernel_tol = a.kernel_tol;
     o.refine = a.refine;
     o.max_order = a.max_order;
+    o.bpdn_score = a.bpdn_score.unwrap_or_default();
     o
 }
 
@@ -440,8 +450,13 @@ fn print_pbsid(run: &PbsidRun, opts: &PbsidOptions, out: &mut dyn Write) -> std:
     match f.lambda {
         Some(lam) => writeln!(
             out,
-            "  regularisation: {} , lambda = {lam:.3e} x largest eigenvalue ({:.1} effective parameters per output)",
+            "  regularisation: {}{} , lambda = {lam:.3e} x largest eigenvalue ({:.1} effective parameters per output)",
             reg_name(opts.reg),
+            if opts.reg == Reg::BpdnSv {
+                format!(" (score: {})", opts.bpdn_score.name())
+            } else {
+                String::new()
+            },
             f.dof
         )?,
         None => writeln!(
@@ -518,6 +533,12 @@ fn read_with_bytes(path: &Path) -> Result<(Dataset, Vec<u8>), CliError> {
 }
 
 fn pbsid_cmd(a: &PbsidArgs, out: &mut dyn Write) -> Result<(), CliError> {
+    if a.bpdn_score.is_some() && a.reg != Reg::BpdnSv {
+        return Err(CliError::Other(format!(
+            "--bpdn-score applies to --reg bpdn-sv only (got --reg {})",
+            reg_name(a.reg)
+        )));
+    }
     let opts = pbsid_options(a);
     let (ds, bytes) = read_with_bytes(&a.train)?;
     let val = match &a.val {

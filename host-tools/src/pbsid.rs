@@ -56,6 +56,46 @@ impl std::str::FromStr for Reg {
     }
 }
 
+/// How BPDN-SV (`Reg::BpdnSv`) scores the points of its group-lasso path (see the module
+/// documentation of [`crate::bpdn`] for the evidence behind the default).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum BpdnScore {
+    /// Ours (the default): the free-run simulation of each point's realized model, on the
+    /// `--val` data or on the whole training record with an AIC order penalty; the point
+    /// and the order come out together ([`bpdn::select_by_simulation`]).
+    #[default]
+    Simulation,
+    /// The sparse paper's Algorithm 1: the path on the identification windows, each point
+    /// scored by its one-step prediction error on the validation windows (from their
+    /// statistics; the last quarter of the training record when no validation data are
+    /// given), the order then by the singular-value rule ([`bpdn::select`] with
+    /// [`bpdn::Rule::Sv`]).
+    OneStep,
+}
+
+impl BpdnScore {
+    /// Name used on the command line and in the model file's `fit` record.
+    pub fn name(&self) -> &'static str {
+        match self {
+            BpdnScore::Simulation => "simulation",
+            BpdnScore::OneStep => "paper",
+        }
+    }
+}
+
+impl std::str::FromStr for BpdnScore {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        match s {
+            "simulation" => Ok(BpdnScore::Simulation),
+            "paper" => Ok(BpdnScore::OneStep),
+            other => Err(format!(
+                "unknown BPDN-SV score '{other}' (expected simulation or paper)"
+            )),
+        }
+    }
+}
+
 /// Model order: given, or chosen from the singular-value gap.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub enum Order {
@@ -135,6 +175,8 @@ pub struct PbsidOptions {
     /// Refine the subspace estimate by output-error Levenberg-Marquardt ([`crate::refine`]):
     /// removes the finite-window truncation bias on open-loop data.
     pub refine: bool,
+    /// How BPDN-SV scores its path (only read with `Reg::BpdnSv`).
+    pub bpdn_score: BpdnScore,
 }
 
 impl PbsidOptions {
@@ -152,6 +194,7 @@ impl PbsidOptions {
             kernel_rows: None,
             kernel_tol: 0.0,
             refine: false,
+            bpdn_score: BpdnScore::Simulation,
         }
     }
 }
@@ -692,8 +735,10 @@ pub fn fit(sig: &Signals, opts: &PbsidOptions) -> Result<PbsidFit, FitError> {
     fit_with_validation(sig, None, opts)
 }
 
-/// As [`fit`]; `val` is the validation data BPDN-SV scores its path on (without it, the
-/// last quarter of `sig`, as the sparse paper does). Other regularisations ignore it.
+/// As [`fit`]; `val` is the validation data BPDN-SV scores its path on. Without it,
+/// `BpdnScore::Simulation` (the default) scores on the whole of `sig` with an AIC order
+/// penalty and `BpdnScore::OneStep` on the last quarter of `sig`, as the sparse paper does.
+/// Other regularisations ignore it.
 pub fn fit_with_validation(
     sig: &Signals,
     val: Option<&Signals>,
@@ -1024,9 +1069,10 @@ fn dual_states(
 
 /// Sparse path (sparse paper section 4.2): [C K^p, D] by the group-lasso path of (33) on
 /// explicit regressors. BPDN-AIC: the point of rule (34), then Gamma^p K^p Z by eq. (14),
-/// the SVD (15) and the state candidates (16) for windows 0..=N-p. BPDN-SV: the point and
-/// the order whose realized model simulates best ([`bpdn::select_by_simulation`]); the
-/// chosen order is returned with its reason.
+/// the SVD (15) and the state candidates (16) for windows 0..=N-p. BPDN-SV with
+/// `BpdnScore::Simulation` (default): the point and the order whose realized model
+/// simulates best ([`bpdn::select_by_simulation`]); the chosen order is returned with its
+/// reason. BPDN-SV with `BpdnScore::OneStep`: Algorithm 1 of the paper ([`bpdn_paper`]).
 #[allow(clippy::type_complexity)]
 fn bpdn_states(
     dims: &PbsidDims,
@@ -1048,6 +1094,10 @@ fn bpdn_states(
     let (p, l) = (dims.p, dims.l);
     let all: Vec<usize> = (0..windows).collect();
     let (g, y) = bpdn::LazyGram::build(dims, slab, &all, opts.feedthrough)?;
+    if opts.reg == Reg::BpdnSv && opts.bpdn_score == BpdnScore::OneStep {
+        let (sv, x, info, why) = bpdn_paper(dims, f, slab, windows, &g, val_rows, opts)?;
+        return Ok((sv, x, info, why, None));
+    }
     if opts.reg == Reg::BpdnSv {
         let val_slab = match val_rows {
             Some(rows) => {
@@ -1121,6 +1171,77 @@ fn bpdn_states(
         dof: sel.active as f64,
     };
     Ok((sv, x, info, sel.reason, None))
+}
+
+/// BPDN-SV as the sparse paper does it (Algorithm 1, section 5.1): the group-lasso path on
+/// the identification windows, each point scored by the one-step prediction error
+/// ||Y_val - [C K^p, D] Z_val||_F of the validation windows, computed from their statistics
+/// (Gram, cross products, ||Y_val||^2). With `val_rows` (a validation file) every training
+/// window identifies and every window of the file validates; without it the first three
+/// quarters of the training record identify (windows whose target y_{k+p} lies in them)
+/// and the windows lying wholly in the last quarter validate. The chosen [C K^p, D] is not
+/// refit; Gamma^p K^p Z (14), the SVD (15) and the state candidates (16) are then formed on
+/// all training windows (`g`) and the order is left to the singular-value rule.
+#[allow(clippy::too_many_arguments)]
+fn bpdn_paper(
+    dims: &PbsidDims,
+    f: usize,
+    slab: &Slab<'_, f64>,
+    windows: usize,
+    g: &bpdn::LazyGram,
+    val_rows: Option<&[f64]>,
+    opts: &PbsidOptions,
+) -> Result<(Vec<f64>, DMatrix<f64>, RegressionInfo, String), FitError> {
+    let (p, l) = (dims.p, dims.l);
+    let val_slab = match val_rows {
+        Some(rows) => Some(Slab::new(rows, dims.r, dims.l, dims.m())?),
+        None => None,
+    };
+    let (id_windows, val_windows, split): (Vec<usize>, Vec<usize>, String) = match &val_slab {
+        Some(vs) => (
+            (0..windows).collect(),
+            (0..vs.len().saturating_sub(p)).collect(),
+            "validation file".to_string(),
+        ),
+        None => {
+            let n_id = (3 * slab.len()) / 4;
+            (
+                (0..windows).filter(|k| k + p < n_id).collect(),
+                (0..windows).filter(|&k| k >= n_id).collect(),
+                format!("samples {n_id}.. of the training record"),
+            )
+        }
+    };
+    if id_windows.len() < 2 || val_windows.len() < 2 {
+        return Err(FitError(format!(
+            "{} identification and {} validation windows: too few samples for BPDN-SV (paper score) with a past window of {p}",
+            id_windows.len(),
+            val_windows.len()
+        )));
+    }
+    let (id, y_id) = bpdn::LazyGram::build(dims, slab, &id_windows, opts.feedthrough)?;
+    let (val, y_val) = bpdn::LazyGram::build(
+        dims,
+        val_slab.as_ref().unwrap_or(slab),
+        &val_windows,
+        opts.feedthrough,
+    )?;
+    let sel = bpdn::select(&id, &y_id, l, bpdn::Rule::Sv, Some((&val, &y_val)), 0.0)?;
+    let mut z_last = vec![0.0; dims.q()?];
+    write_pbsid_regressor(dims, slab, windows, &mut z_last);
+    let gkz = bpdn::gamma_kz(dims, f, &sel.theta, g, &z_last);
+    let (sv, x) = states_from_gkz(&gkz, windows)?;
+    let info = RegressionInfo {
+        lambda: Some((sel.lambda, 1.0)),
+        dof: sel.active as f64,
+    };
+    let why = format!(
+        "{} (Algorithm 1: path on {} identification windows, one-step error on {} validation windows, {split})",
+        sel.reason,
+        id_windows.len(),
+        val_windows.len()
+    );
+    Ok((sv, x, info, why))
 }
 
 /// Algorithm 3 (kernel selection): the dictionary of windows the core admits by its

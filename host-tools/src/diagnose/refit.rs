@@ -196,6 +196,13 @@ impl Spec {
                     }
                 };
                 opts.reg = reg_text.parse::<Reg>().unwrap_or(Reg::TikhonovGcv);
+                if let Some(score) = fit
+                    .get("bpdn_score")
+                    .and_then(Value::as_str)
+                    .and_then(|s| s.parse().ok())
+                {
+                    opts.bpdn_score = score;
+                }
                 opts.feedthrough = fit
                     .get("feedthrough")
                     .and_then(Value::as_bool)
