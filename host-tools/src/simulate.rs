@@ -38,7 +38,7 @@ pub fn simulate_signals(kind: &ModelKind, sig: &Signals, mode: Mode) -> DMatrix<
 }
 
 /// LPV-ARX recursion y(k) = -sum_i a_i(mu_k) y(k-i) + sum_j b_j(mu_k) u(k-j) with
-/// a_i(mu) = sum_q a[i][q] mu^(q); samples before the record are zero.
+/// a_i(mu) = sum_q `a[i][q]` mu^(q); samples before the record are zero.
 pub fn arx_run(m: &ArxModel, sig: &Signals, mode: Mode) -> DMatrix<f64> {
     let n = sig.len();
     let mut yhat = DMatrix::<f64>::zeros(n, 1);
