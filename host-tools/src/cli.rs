@@ -450,12 +450,17 @@ fn print_pbsid(run: &PbsidRun, opts: &PbsidOptions, out: &mut dyn Write) -> std:
     match f.lambda {
         Some(lam) => writeln!(
             out,
-            "  regularisation: {}{} , lambda = {lam:.3e} x largest eigenvalue ({:.1} effective parameters per output)",
+            "  regularisation: {}{}, lambda = {lam:.3e} x {} ({:.1} effective parameters per output)",
             reg_name(opts.reg),
             if opts.reg == Reg::BpdnSv {
                 format!(" (score: {})", opts.bpdn_score.name())
             } else {
                 String::new()
+            },
+            if matches!(opts.reg, Reg::BpdnSv | Reg::BpdnAic) {
+                "lambda_max"
+            } else {
+                "largest eigenvalue"
             },
             f.dof
         )?,
