@@ -138,7 +138,8 @@ impl KernelSweep {
     }
 }
 
-/// Dot product of two equal-length slices in four independent lanes (vectorises).
+/// Dot product of two equal-length slices in four independent lanes, so it vectorises
+/// (`lpvid::real::dot` sums in order, the device's bit-exact reference, and does not).
 pub fn dot4(a: &[f64], b: &[f64]) -> f64 {
     let mut s = [0.0f64; 4];
     let (ca, ra) = a.split_at(a.len() / 4 * 4);

@@ -161,37 +161,30 @@ impl Tridiagonal {
             let bs = self.factors.nrows();
             let ess = self.reflectors.as_ref().submatrix(1, 0, n - 1, n - 1);
             let rows = x.as_mut().subrows_mut(1, n - 1);
-            if transpose {
-                let mut buf = MemBuffer::new(
+            let apply = if transpose {
+                hh::apply_block_householder_sequence_transpose_on_the_left_in_place_with_conj::<f64>
+            } else {
+                hh::apply_block_householder_sequence_on_the_left_in_place_with_conj::<f64>
+            };
+            let mut buf =
+                MemBuffer::new(faer::dyn_stack::StackReq::any_of(&[
                     hh::apply_block_householder_sequence_transpose_on_the_left_in_place_scratch::<
                         f64,
                     >(n - 1, bs, k),
-                );
-                hh::apply_block_householder_sequence_transpose_on_the_left_in_place_with_conj(
-                    ess,
-                    self.factors.as_ref(),
-                    faer::Conj::No,
-                    rows,
-                    par,
-                    MemStack::new(&mut buf),
-                );
-            } else {
-                let mut buf = MemBuffer::new(
                     hh::apply_block_householder_sequence_on_the_left_in_place_scratch::<f64>(
                         n - 1,
                         bs,
                         k,
                     ),
-                );
-                hh::apply_block_householder_sequence_on_the_left_in_place_with_conj(
-                    ess,
-                    self.factors.as_ref(),
-                    faer::Conj::No,
-                    rows,
-                    par,
-                    MemStack::new(&mut buf),
-                );
-            }
+                ]));
+            apply(
+                ess,
+                self.factors.as_ref(),
+                faer::Conj::No,
+                rows,
+                par,
+                MemStack::new(&mut buf),
+            );
         }
         DMatrix::from_fn(n, k, |i, j| x[(i, j)])
     }
@@ -292,63 +285,37 @@ impl Tridiagonal {
         Ok((vals, proj))
     }
 
-    /// The pivots d and multipliers l of T + lam I = L D L^T, or None when it is not
-    /// numerically positive definite.
-    fn shifted_ldl(&self, lam: f64) -> Option<(Vec<f64>, Vec<f64>)> {
+    /// T + lam I = L D L^T (unit lower bidiagonal L), or None when it is not numerically
+    /// positive definite.
+    fn shifted_ldl(&self, lam: f64) -> Option<ShiftedLdl> {
         let n = self.n;
-        let mut dd = vec![0.0; n];
-        let mut ll = vec![0.0; n];
-        if n == 0 {
-            return Some((dd, ll));
-        }
-        dd[0] = self.diag[0] + lam;
-        for i in 1..n {
-            if !positive_finite(dd[i - 1]) {
+        let mut d = vec![0.0; n];
+        let mut l = vec![0.0; n];
+        for i in 0..n {
+            if i > 0 {
+                l[i] = self.sub[i - 1] / d[i - 1];
+            }
+            d[i] = self.diag[i] + lam - if i > 0 { l[i] * self.sub[i - 1] } else { 0.0 };
+            if !positive_finite(d[i]) {
                 return None;
             }
-            ll[i] = self.sub[i - 1] / dd[i - 1];
-            dd[i] = self.diag[i] + lam - ll[i] * self.sub[i - 1];
         }
-        if !positive_finite(dd[n - 1]) {
-            return None;
-        }
-        Some((dd, ll))
+        Some(ShiftedLdl { d, l })
     }
 
-    /// ||(T + lam I)^{-1} c||_F^2 and tr((T + lam I)^{-1}) in O(n) per column (the diagonal of
-    /// the inverse by the backward recurrence X_ii = 1/d_i + l_{i+1}^2 X_{i+1,i+1} of the
-    /// LDL^T factors), or None when T + lam I is not numerically positive definite.
-    /// These are the residual and the missing degrees of freedom of a dual ridge problem.
+    /// ||(T + lam I)^{-1} c||_F^2 and tr((T + lam I)^{-1}) in O(n) per column, or None when
+    /// T + lam I is not numerically positive definite. These are the residual and the
+    /// missing degrees of freedom of a dual ridge problem.
     pub fn shifted_norm_trace(&self, lam: f64, c: &DMatrix<f64>) -> Option<(f64, f64)> {
-        let n = self.n;
-        let (dd, ll) = self.shifted_ldl(lam)?;
+        let ldl = self.shifted_ldl(lam)?;
         let mut norm = 0.0;
-        let mut x = vec![0.0; n];
-        for j in 0..c.ncols() {
-            let col = c.column(j);
-            for i in 0..n {
-                x[i] = col[i] - if i > 0 { ll[i] * x[i - 1] } else { 0.0 };
-            }
-            for (v, d) in x.iter_mut().zip(&dd) {
-                *v /= d;
-            }
-            for i in (0..n.saturating_sub(1)).rev() {
-                x[i] -= ll[i + 1] * x[i + 1];
-            }
+        let mut x = vec![0.0; self.n];
+        for col in c.column_iter() {
+            x.copy_from_slice(col.as_slice());
+            ldl.solve_in_place(&mut x);
             norm += x.iter().map(|v| v * v).sum::<f64>();
         }
-        let mut trace = 0.0;
-        let mut xii = 0.0;
-        for i in (0..n).rev() {
-            xii = 1.0 / dd[i]
-                + if i + 1 < n {
-                    ll[i + 1] * ll[i + 1] * xii
-                } else {
-                    0.0
-                };
-            trace += xii;
-        }
-        Some((norm, trace))
+        Some((norm, ldl.inverse_trace()))
     }
 
     /// Number of eigenvalues of T below `x` (Sylvester's law of inertia on T - x I).
@@ -400,35 +367,55 @@ impl Tridiagonal {
     }
 
     /// (T + lam I)^{-1} c for `c` in the tridiagonal coordinates (symmetric LDL^T without
-    /// pivoting: meant for T + lam I positive definite, lam well above rounding).
-    pub fn solve_shifted(&self, lam: f64, c: &DMatrix<f64>) -> DMatrix<f64> {
-        let n = self.n;
+    /// pivoting), or None when T + lam I is not numerically positive definite.
+    pub fn solve_shifted(&self, lam: f64, c: &DMatrix<f64>) -> Option<DMatrix<f64>> {
+        let ldl = self.shifted_ldl(lam)?;
         let mut x = c.clone();
-        if n == 0 {
-            return x;
+        for mut col in x.column_iter_mut() {
+            ldl.solve_in_place(col.as_mut_slice());
         }
-        let mut dd = vec![0.0; n];
-        let mut ll = vec![0.0; n];
-        dd[0] = self.diag[0] + lam;
+        Some(x)
+    }
+}
+
+/// LDL^T factors of a shifted symmetric tridiagonal matrix: pivots `d`, multipliers `l`
+/// (l[i] below the diagonal in row i; l[0] unused).
+struct ShiftedLdl {
+    d: Vec<f64>,
+    l: Vec<f64>,
+}
+
+impl ShiftedLdl {
+    /// x <- (L D L^T)^{-1} x.
+    fn solve_in_place(&self, x: &mut [f64]) {
+        let n = x.len();
         for i in 1..n {
-            ll[i] = self.sub[i - 1] / dd[i - 1];
-            dd[i] = self.diag[i] + lam - ll[i] * self.sub[i - 1];
+            x[i] -= self.l[i] * x[i - 1];
         }
-        for j in 0..x.ncols() {
-            let mut col = x.column_mut(j);
-            for i in 1..n {
-                let prev = col[i - 1];
-                col[i] -= ll[i] * prev;
-            }
-            for i in 0..n {
-                col[i] /= dd[i];
-            }
-            for i in (0..n - 1).rev() {
-                let next = col[i + 1];
-                col[i] -= ll[i + 1] * next;
-            }
+        for (v, d) in x.iter_mut().zip(&self.d) {
+            *v /= d;
         }
-        x
+        for i in (0..n.saturating_sub(1)).rev() {
+            x[i] -= self.l[i + 1] * x[i + 1];
+        }
+    }
+
+    /// tr((L D L^T)^{-1}) by the backward recurrence of the inverse's diagonal,
+    /// X_ii = 1/d_i + l_{i+1}^2 X_{i+1,i+1}.
+    fn inverse_trace(&self) -> f64 {
+        let n = self.d.len();
+        let mut trace = 0.0;
+        let mut xii = 0.0;
+        for i in (0..n).rev() {
+            let next = if i + 1 < n {
+                self.l[i + 1] * self.l[i + 1] * xii
+            } else {
+                0.0
+            };
+            xii = 1.0 / self.d[i] + next;
+            trace += xii;
+        }
+        trace
     }
 }
 
@@ -528,7 +515,7 @@ mod tridiagonal_tests {
         let b = DMatrix::from_fn(n, 3, |i, j| ((i + 2 * j) as f64).cos());
         let t = Tridiagonal::new(&a);
         let lam = 0.37;
-        let x = t.from_tridiagonal(&t.solve_shifted(lam, &t.to_tridiagonal(&b)));
+        let x = t.from_tridiagonal(&t.solve_shifted(lam, &t.to_tridiagonal(&b)).unwrap());
         let shifted = &a + DMatrix::identity(n, n) * lam;
         let r = &shifted * &x - &b;
         assert!(r.norm() < 1e-10 * b.norm(), "{}", r.norm());

@@ -605,9 +605,10 @@ fn ridge_solve(
             }
         };
         if lam > SHIFTED_SOLVE_MIN * vmax && dof.is_finite() {
-            let x = tri.from_tridiagonal(&tri.solve_shifted(lam, &bt));
-            let lambda = Some((lam, vmax));
-            return Ok((x, RegressionInfo { lambda, dof }));
+            if let Some(w) = tri.solve_shifted(lam, &bt) {
+                let lambda = Some((lam, vmax));
+                return Ok((tri.from_tridiagonal(&w), RegressionInfo { lambda, dof }));
+            }
         }
     }
     let (vals, vecs) = sym_eig(a)?;
