@@ -22,9 +22,17 @@ check-fmt:
 clippy:
 	cargo clippy --workspace --all-targets -- -D warnings
 
-# The core must build for a Cortex-M4F with no allocator.
+# The core must build for a Cortex-M4F with no allocator: the statistics alone
+# (no default features: nalgebra + libm only, checked in the dependency tree) and with the
+# wire protocol and device engine (feature `device`, what the firmware links).
 core-thumb:
-	cargo build -p lpvid --target thumbv7em-none-eabihf --release
+	cargo build -p lpvid --no-default-features --target thumbv7em-none-eabihf --release
+	cargo build -p lpvid --no-default-features --features device --target thumbv7em-none-eabihf --release
+	@tree=$$(cargo tree -p lpvid --no-default-features -e normal --prefix none); \
+	if echo "$$tree" | grep -Eq '^(serde|postcard)'; then \
+	  echo "core-thumb: the no-default-features core pulls wire crates:"; echo "$$tree"; exit 1; \
+	fi; \
+	echo "core-thumb: no-default-features dependencies: $$(echo "$$tree" | awk '{print $$1}' | sort -u | tr '\n' ' ')"
 
 # Unit, integration and acceptance tests (release: the acceptance tests are Monte-Carlo runs).
 test-all:

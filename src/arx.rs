@@ -18,6 +18,7 @@
 
 use crate::error::{check_vec, Error, Field};
 use crate::real::{first_non_finite, Real};
+use crate::ring::Ring;
 
 /// Binomial coefficient C(n, k), `None` on overflow. `const` so firmware can size storage.
 pub const fn binom(n: usize, k: usize) -> Option<usize> {
@@ -215,19 +216,17 @@ impl ArxDims {
     }
 }
 
-/// Ring buffer of the last max(na, nb) + 1 samples (u, y, p) of an LPV-ARX model, in
-/// caller-provided storage `S` (`[T; arx_window_len(..)]` on the device, `Vec` on the host).
-/// A spare slot makes [`ArxWindow::unpush`] possible.
+/// The last max(na, nb) + 1 samples (u, y, p) of an LPV-ARX model on a [`Ring`] in
+/// caller-provided storage `S` (`[T; arx_window_len(..)]` on the device, `Vec` on the host),
+/// followed by one basis vector of scratch. The ring's spare slot makes
+/// [`ArxWindow::unpush`] possible.
 ///
 /// Size: (max(na, nb) + 2)(r + 1 + s) + C(s + ng, ng) values; B6 (na = 4, nb = 2, r = s = 1,
 /// ng = 2) needs 21 values (84 bytes in f32).
 #[derive(Debug, Clone)]
 pub struct ArxWindow<T, S> {
     dims: ArxDims,
-    buf: S,
-    head: usize,
-    len: usize,
-    _t: core::marker::PhantomData<T>,
+    ring: Ring<T, S>,
 }
 
 impl<T: Real, S: AsRef<[T]> + AsMut<[T]>> ArxWindow<T, S> {
@@ -245,20 +244,13 @@ impl<T: Real, S: AsRef<[T]> + AsMut<[T]>> ArxWindow<T, S> {
         }
         Ok(ArxWindow {
             dims,
-            buf,
-            head: 0,
-            len: 0,
-            _t: core::marker::PhantomData,
+            ring: Ring::new(dims.sample_len(), dims.depth() + 1, buf)?,
         })
     }
 
     /// The dimensions.
     pub fn dims(&self) -> ArxDims {
         self.dims
-    }
-
-    fn slots(&self) -> usize {
-        self.dims.depth() + 2
     }
 
     /// Append sample k: u(k) (length r), y(k), p(k) (length s). Lengths and finiteness are
@@ -268,58 +260,48 @@ impl<T: Real, S: AsRef<[T]> + AsMut<[T]>> ArxWindow<T, S> {
         check_vec(Field::Input, u, d.r)?;
         check_vec(Field::Output, core::slice::from_ref(&y), 1)?;
         check_vec(Field::Scheduling, p, d.s)?;
-        let w = d.sample_len();
-        let off = self.head * w;
-        let row = &mut self.buf.as_mut()[off..off + w];
-        row[..d.r].copy_from_slice(u);
-        row[d.r] = y;
-        row[d.r + 1..].copy_from_slice(p);
-        self.head = (self.head + 1) % self.slots();
-        if self.len < d.depth() + 1 {
-            self.len += 1;
-        }
+        self.ring.push_with(|row| {
+            row[..d.r].copy_from_slice(u);
+            row[d.r] = y;
+            row[d.r + 1..].copy_from_slice(p);
+        });
         Ok(())
     }
 
     /// Undo the most recent push; `was_len` is [`ArxWindow::len`] before it.
     pub fn unpush(&mut self, was_len: usize) {
-        self.head = (self.head + self.slots() - 1) % self.slots();
-        self.len = was_len;
+        self.ring.unpush(was_len);
     }
 
     /// Number of samples held (at most max(na, nb) + 1).
     pub fn len(&self) -> usize {
-        self.len
+        self.ring.len()
     }
 
     /// True when nothing is held.
     pub fn is_empty(&self) -> bool {
-        self.len == 0
+        self.ring.is_empty()
     }
 
     /// True once max(na, nb) + 1 samples are held: chi(k) of the newest sample exists.
     pub fn is_ready(&self) -> bool {
-        self.len == self.dims.depth() + 1
+        self.ring.is_full()
     }
 
     /// Forget all samples (a new experiment: regressors never straddle a gap).
     pub fn clear(&mut self) {
-        self.len = 0;
-        self.head = 0;
+        self.ring.clear();
     }
 
     /// Row of the sample `lag` steps before the newest (lag < len).
     #[inline(always)]
     fn row(&self, lag: usize) -> &[T] {
-        let slots = self.slots();
-        let slot = (self.head + 2 * slots - 1 - lag) % slots;
-        let w = self.dims.sample_len();
-        &self.buf.as_ref()[slot * w..(slot + 1) * w]
+        self.ring.newest(lag)
     }
 
     /// Newest sample's scheduling p(k).
     pub fn p_now(&self) -> Option<&[T]> {
-        if self.len == 0 {
+        if self.ring.is_empty() {
             return None;
         }
         Some(&self.row(0)[self.dims.r + 1..])
@@ -422,17 +404,12 @@ impl<T: Real, S: AsRef<[T]> + AsMut<[T]>> ArxWindow<T, S> {
                 "ARX window not ready: needs max(na, nb) + 1 samples",
             ));
         }
-        let w = d.sample_len();
-        let ring = self.slots() * w;
         // basis of p(k) into the scratch behind the ring
-        let slot = (self.head + self.slots() - 1) % self.slots();
         {
-            let buf = self.buf.as_mut();
-            let (ring_part, scratch) = buf.split_at_mut(ring);
-            let p = &ring_part[slot * w + d.r + 1..slot * w + w];
-            write_basis(d.s, d.ng, p, &mut scratch[..nbas])?;
+            let (newest, scratch) = self.ring.newest_and_tail_mut(0);
+            write_basis(d.s, d.ng, &newest[d.r + 1..], &mut scratch[..nbas])?;
         }
-        let basis = &self.buf.as_ref()[ring..ring + nbas];
+        let basis = &self.ring.tail()[..nbas];
         let mut acc = T::ZERO;
         for c in 0..d.chi_len() {
             let x = self.chi_entry(c);
@@ -456,18 +433,16 @@ impl<T: Real, S: AsRef<[T]> + AsMut<[T]>> ArxWindow<T, S> {
     /// measured outputs or zeros, the initial condition). On error nothing changes.
     pub fn simulate_step(&mut self, theta: &[T], u: &[T], p: &[T]) -> Result<T, Error> {
         let d = self.dims;
-        if self.len < d.depth() {
+        if self.ring.len() < d.depth() {
             return Err(Error::InvalidConfig(
                 "ARX simulation needs max(na, nb) seeded samples",
             ));
         }
-        let was = self.len;
+        let was = self.ring.len();
         self.push(u, T::ZERO, p)?;
         match self.predict(theta) {
             Ok(yhat) => {
-                let w = d.sample_len();
-                let slot = (self.head + self.slots() - 1) % self.slots();
-                self.buf.as_mut()[slot * w + d.r] = yhat;
+                self.ring.newest_mut(0)[d.r] = yhat;
                 Ok(yhat)
             }
             Err(e) => {
@@ -475,6 +450,35 @@ impl<T: Real, S: AsRef<[T]> + AsMut<[T]>> ArxWindow<T, S> {
                 Err(e)
             }
         }
+    }
+}
+
+/// One sample (u, y, p) with a scalar y; a block row is [u (r), y, p (s)]. Pushing reports
+/// nothing ([`ArxWindow::is_ready`] says when chi(k) exists).
+impl<T: Real, S: AsRef<[T]> + AsMut<[T]>> crate::Streaming<T> for ArxWindow<T, S> {
+    type Sample<'a> = (&'a [T], T, &'a [T]);
+    type Output = ();
+
+    fn update(&mut self, (u, y, p): Self::Sample<'_>) -> Result<(), Error> {
+        self.push(u, y, p)
+    }
+
+    fn row_len(&self) -> usize {
+        self.dims.sample_len()
+    }
+
+    fn sample<'a>(&self, row: &'a [T]) -> Self::Sample<'a> {
+        split_arx_sample(self.dims.r, row)
+    }
+}
+
+/// Split a row [u (r), y, p] into (u, y, p); a short row gives short slices and a NaN y
+/// (rejected by the update), never a panic.
+pub(crate) fn split_arx_sample<T: Real>(r: usize, row: &[T]) -> (&[T], T, &[T]) {
+    let (u, rest) = row.split_at(r.min(row.len()));
+    match rest.split_first() {
+        Some((y, p)) => (u, *y, p),
+        None => (u, T::of(f64::NAN), rest),
     }
 }
 
@@ -558,11 +562,11 @@ mod tests {
         w.write_chi(&mut c2).unwrap();
         assert_eq!(c2[0], -yhat);
         // bad data leaves the window alone
-        let snap = (w.len(), w.head);
+        let snap = (w.len(), w.ring.head());
         assert!(w.push(&[f64::NAN, 0.0], 0.0, &[0.0, 0.0]).is_err());
         assert!(w.push(&[0.0, 0.0], f64::INFINITY, &[0.0, 0.0]).is_err());
         assert!(w.simulate_step(&theta[..3], &u(7), &p(7)).is_err());
-        assert_eq!((w.len(), w.head), snap);
+        assert_eq!((w.len(), w.ring.head()), snap);
     }
 
     #[test]

@@ -720,6 +720,45 @@ where
     }
 }
 
+/// One sample (zeta, u, y, p) with a scalar y; a block row is [zeta (nzeta), u (r), y,
+/// p (s)]. The output says whether the sample was accumulated (window full).
+impl<T, S, W> crate::Streaming<T> for BcivStats<T, S, W>
+where
+    T: Real,
+    S: AsRef<[T]> + AsMut<[T]>,
+    W: AsRef<[T]> + AsMut<[T]>,
+{
+    type Sample<'a> = (&'a [T], &'a [T], T, &'a [T]);
+    type Output = bool;
+
+    fn update(&mut self, (zeta, u, y, p): Self::Sample<'_>) -> Result<bool, Error> {
+        BcivStats::update(self, zeta, u, y, p)
+    }
+
+    fn row_len(&self) -> usize {
+        self.dims.nzeta + self.dims.arx.sample_len()
+    }
+
+    fn sample<'a>(&self, row: &'a [T]) -> Self::Sample<'a> {
+        let (zeta, rest) = row.split_at(self.dims.nzeta.min(row.len()));
+        let (u, y, p) = crate::arx::split_arx_sample(self.dims.arx.r, rest);
+        (zeta, u, y, p)
+    }
+}
+
+impl<T, S, W, S2, W2> crate::Merge<BcivStats<T, S2, W2>> for BcivStats<T, S, W>
+where
+    T: Real,
+    S: AsRef<[T]> + AsMut<[T]>,
+    W: AsRef<[T]> + AsMut<[T]>,
+    S2: AsRef<[T]> + AsMut<[T]>,
+    W2: AsRef<[T]> + AsMut<[T]>,
+{
+    fn merge(&mut self, other: &BcivStats<T, S2, W2>) -> Result<(), Error> {
+        BcivStats::merge(self, other)
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -19,10 +19,10 @@
 //!   statistics by the core's coordinate-descent Lasso ([`crate::lasso`], l1 or l2,1,
 //!   optionally on standardised columns, lambda as a fraction of lambda_max; 0 gives least
 //!   squares). Needs (3 l + 2)(q + r) of the `X` solver values.
-//! - **Prediction**: a pushed LPV state-space model's one-step-ahead predictor
-//!   yhat_k = C(mu_k) x_k + D(mu_k) u_k, x_{k+1} = sum_i mu_k^(i) (A^(i) x_k + B^(i) u_k +
-//!   K^(i) (y_k - yhat_k)) runs on every applied sample and accumulates the squared error
-//!   per output. Needs the model's values plus 2 n + 3 l of the `M` model values.
+//! - **Prediction**: a pushed LPV state-space model (values in the `[A|B|K|C|D]` layout of
+//!   [`crate::model`]) runs its one-step-ahead predictor ([`crate::model::ModelView::predict_step`])
+//!   on every applied sample and accumulates the squared error per output. Needs the
+//!   model's values plus its predictor state (2 n + 3 l) of the `M` model values.
 //!
 //! Size: the struct holds all storage inline: W + G + R + X + M floats, 3 F bytes (receive,
 //! scratch, transmit buffers; F bytes cover a raw frame of [`max_raw`]`(F)`), and about 100
@@ -39,6 +39,7 @@ use crate::protocol::{
 };
 use core::mem::MaybeUninit;
 
+use crate::model::{values_len, ModelDims};
 use crate::real::Real;
 use crate::stats::{packed_len, stat_vector_len, PbsidStats, PbsidStatsArrays, StatsLayout};
 use crate::window::{window_storage_len, PbsidDims};
@@ -146,12 +147,17 @@ struct ModelShape {
     total: usize,
 }
 
-/// Values of an LPV-SS model with these dimensions, or `None` on overflow.
-fn model_values(n: usize, r: usize, l: usize, m: usize, scheduled_output: bool) -> Option<usize> {
-    let mc = if scheduled_output { m } else { 1 };
-    let per_local = n.checked_mul(n.checked_add(r)?.checked_add(l)?)?;
-    let out = l.checked_mul(n.checked_add(r)?)?;
-    m.checked_mul(per_local)?.checked_add(mc.checked_mul(out)?)
+impl ModelShape {
+    /// The model's dimensions under configuration `c` (the layout of [`crate::model`]).
+    fn dims(&self, c: &Config) -> ModelDims {
+        ModelDims {
+            n: self.n,
+            r: c.r as usize,
+            l: c.l as usize,
+            m: c.s as usize + 1,
+            scheduled_output: self.scheduled_output,
+        }
+    }
 }
 
 /// Everything but the receive buffer (so a frame borrowed from it can be handled by a
@@ -486,21 +492,20 @@ impl<
     fn prediction<S: FnMut(&[u8])>(&mut self, seq: u32, send: &mut S) {
         let msg = match (self.shape, &self.config) {
             (Some(sh), Some(c)) if self.model_loaded => {
-                let (n, l) = (sh.n, c.l as usize);
-                let base = sh.total + 2 * n;
-                let e_end = base + 3 * l;
+                let md = sh.dims(c);
+                let l = md.l;
+                let end = sh.total + md.state_len();
                 let bytes = 2 * l * T::BYTES;
-                if e_end > M || bytes > F {
+                if end > M || bytes > F {
                     Message::Error(ErrorReply {
                         code: ErrorCode::Capacity,
                         detail: 0,
                     })
                 } else {
-                    // layout after the state: e (l), sse (l), last yhat (l)
-                    let sse = &self.model[base + l..base + 2 * l];
-                    let last = &self.model[base + 2 * l..e_end];
-                    let a = write_values(sse, &mut self.vals[..l * T::BYTES]).unwrap_or(0);
-                    let b = write_values(last, &mut self.vals[a..]).unwrap_or(0);
+                    let state = &self.model[sh.total..end];
+                    let a =
+                        write_values(md.sse(state), &mut self.vals[..l * T::BYTES]).unwrap_or(0);
+                    let b = write_values(md.prediction(state), &mut self.vals[a..]).unwrap_or(0);
                     Message::Prediction(Prediction {
                         count: self.pred_count,
                         sse: &self.vals[..a],
@@ -577,7 +582,7 @@ impl<
 
     fn clear_predictor(&mut self) {
         if let (Some(sh), Some(c)) = (self.shape, &self.config) {
-            let end = (sh.total + 2 * sh.n + 3 * c.l as usize).min(M);
+            let end = (sh.total + sh.dims(c).state_len()).min(M);
             let start = sh.total.min(end);
             for v in self.model[start..end].iter_mut() {
                 *v = T::ZERO;
@@ -617,8 +622,12 @@ impl<
                 );
             }
             if self.model_loaded {
-                if let Some(sh) = self.shape {
-                    predict_step(&mut self.model, sh, &d, u, y, p);
+                if let (Some(sh), Some(c)) = (self.shape, &self.config) {
+                    let (vals, state) = self.model.split_at_mut(sh.total);
+                    if let Ok(view) = sh.dims(c).view(vals) {
+                        // lengths were checked at the push; the state fits (need <= M)
+                        let _ = view.predict_step(state, u, y, p);
+                    }
                     self.pred_count = self.pred_count.wrapping_add(1);
                 }
             }
@@ -714,7 +723,7 @@ impl<
         };
         let (r, l, m) = (c.r as usize, c.l as usize, c.s as usize + 1);
         let n = ch.n as usize;
-        let Some(total) = model_values(n, r, l, m, ch.scheduled_output) else {
+        let Some(total) = values_len(n, r, l, m, ch.scheduled_output) else {
             return err(ErrorCode::ModelInvalid, 0);
         };
         if n == 0 || ch.total as usize != total {
@@ -758,76 +767,6 @@ impl<
             self.clear_predictor();
         }
         Cached::Ack
-    }
-}
-
-/// One step of the one-step-ahead predictor (see the module docs) on the model values
-/// `mv` = [params | x (n) | x_next (n) | e (l) | sse (l) | last yhat (l)].
-fn predict_step<T: WireReal>(
-    mv: &mut [T],
-    sh: ModelShape,
-    d: &PbsidDims,
-    u: &[T],
-    y: &[T],
-    p: &[T],
-) {
-    let (n, r, l, m) = (sh.n, d.r, d.l, d.m());
-    let mc = if sh.scheduled_output { m } else { 1 };
-    let a_off = 0;
-    let b_off = m * n * n;
-    let k_off = b_off + m * n * r;
-    let c_off = k_off + m * n * l;
-    let d_off = c_off + mc * l * n;
-    let x_off = sh.total;
-    let xn_off = x_off + n;
-    let e_off = xn_off + n;
-    let sse_off = e_off + l;
-    let last_off = sse_off + l;
-    if last_off + l > mv.len() {
-        return;
-    }
-    let mu = |i: usize| if i == 0 { T::ONE } else { p[i - 1] };
-    for o in 0..l {
-        let mut acc = T::ZERO;
-        for i in 0..mc {
-            let w = if sh.scheduled_output { mu(i) } else { T::ONE };
-            let mut part = T::ZERO;
-            for j in 0..n {
-                part += mv[c_off + i * l * n + o * n + j] * mv[x_off + j];
-            }
-            for j in 0..r {
-                part += mv[d_off + i * l * r + o * r + j] * u[j];
-            }
-            acc += w * part;
-        }
-        let e = y[o] - acc;
-        mv[last_off + o] = acc;
-        mv[e_off + o] = e;
-        mv[sse_off + o] += e * e;
-    }
-    for row in 0..n {
-        let mut acc = T::ZERO;
-        for i in 0..m {
-            let w = mu(i);
-            if w == T::ZERO {
-                continue;
-            }
-            let mut part = T::ZERO;
-            for j in 0..n {
-                part += mv[a_off + i * n * n + row * n + j] * mv[x_off + j];
-            }
-            for j in 0..r {
-                part += mv[b_off + i * n * r + row * r + j] * u[j];
-            }
-            for j in 0..l {
-                part += mv[k_off + i * n * l + row * l + j] * mv[e_off + j];
-            }
-            acc += w * part;
-        }
-        mv[xn_off + row] = acc;
-    }
-    for j in 0..n {
-        mv[x_off + j] = mv[xn_off + j];
     }
 }
 

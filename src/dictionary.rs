@@ -43,7 +43,7 @@
 //!
 //! **Eq. (25) restricted to D.** Row block i (i = 1..f) of Gamma^p K^p Z, column b, is
 //! alpha~ kappa_i(b), kappa_i(b)_a = [sum_{j >= i} (Z^{i,j})^T Z^{1,j}]_{a,b} =
-//! `theorem10(d_a, -(i-1), src, b, i-1, p)`: the shifted kernel touches samples 0..p-i of the
+//! [`shifted_kernel`]`(d_a, 0, src, b, i, p)` (kernel paper eq. (25)): the shifted kernel touches samples 0..p-i of the
 //! dictionary window and b..b+p-1 of the data, so every dictionary row has what it needs.
 //! [`KernelDictionary::shifted_kernels`] gives kappa, [`KernelDictionary::state_candidate`]
 //! the column g_b = Gamma^p K^p z_b (f l values). The realization (section 4.3) is linear in
@@ -62,7 +62,7 @@
 //! m (f l + r + l) + f l = 66, 2 211 values.
 
 use crate::error::{Error, Field};
-use crate::kernel::{dual_kernel, theorem10};
+use crate::kernel::{dual_kernel, shifted_kernel};
 use crate::real::{dot, Real};
 use crate::stats::{packed_len, Gram};
 use crate::window::{window_storage_len, PbsidDims, Samples, Slab, Window};
@@ -215,54 +215,11 @@ pub enum Step<T> {
     },
 }
 
-/// A dictionary window in storage: p + 1 rows [u, y, mu].
-#[derive(Clone, Copy)]
-struct Stored<'a, T> {
-    data: &'a [T],
-    r: usize,
-    l: usize,
-    w: usize,
-}
-
-impl<T: Real> Stored<'_, T> {
-    #[inline(always)]
-    fn row(&self, t: usize) -> &[T] {
-        &self.data[t * self.w..(t + 1) * self.w]
-    }
-}
-
-impl<T: Real> Samples<T> for Stored<'_, T> {
-    #[inline(always)]
-    fn z(&self, t: usize) -> &[T] {
-        &self.row(t)[..self.r + self.l]
-    }
-    #[inline(always)]
-    fn u(&self, t: usize) -> &[T] {
-        &self.row(t)[..self.r]
-    }
-    #[inline(always)]
-    fn y(&self, t: usize) -> &[T] {
-        &self.row(t)[self.r..self.r + self.l]
-    }
-    #[inline(always)]
-    fn mu(&self, t: usize) -> &[T] {
-        &self.row(t)[self.r + self.l..]
-    }
-    fn len(&self) -> usize {
-        self.data.len() / self.w
-    }
-}
-
+/// Dictionary window `a` in storage: its p + 1 rows [u, y, mu] as a [`Slab`].
 #[inline(always)]
-fn stored<'a, T>(wins: &'a [T], dims: &PbsidDims, a: usize) -> Stored<'a, T> {
-    let w = dims.sample_len();
-    let per = (dims.p + 1) * w;
-    Stored {
-        data: &wins[a * per..(a + 1) * per],
-        r: dims.r,
-        l: dims.l,
-        w,
-    }
+fn stored<'a, T: Real>(wins: &'a [T], dims: &PbsidDims, a: usize) -> Slab<'a, T> {
+    let per = (dims.p + 1) * dims.sample_len();
+    Slab::from_rows(&wins[a * per..(a + 1) * per], dims.r, dims.l, dims.m())
 }
 
 /// The normal equations: storage until the freeze fixes their dimension M + l.
@@ -717,7 +674,7 @@ where
         Ok(rss)
     }
 
-    /// Shifted kernels of eq. (25) between the dictionary and the window starting at sample
+    /// Shifted kernels of eq. (25) of the kernel paper ([`shifted_kernel`]) between the dictionary and the window starting at sample
     /// `b` of `src` (needs samples b..b+p-1): out[(i-1) M + a] =
     /// [sum_{j >= i} (Z^{i,j})^T Z^{1,j}]_{d_a, b} for row blocks i = 1..f (`f` <= p).
     pub fn shifted_kernels<X: Samples<T> + ?Sized>(
@@ -735,7 +692,7 @@ where
         for i in 1..=f {
             for a in 0..self.len {
                 out[(i - 1) * self.len + a] =
-                    theorem10(&stored(wins, &d, a), -(i as isize - 1), src, b, i - 1, d.p);
+                    shifted_kernel(&stored(wins, &d, a), 0, src, b, i, d.p);
             }
         }
         Ok(())
@@ -766,7 +723,7 @@ where
         for a in 0..m {
             let da = stored(wins, &d, a);
             for i in 1..=f {
-                let k = theorem10(&da, -(i as isize - 1), src, b, i - 1, d.p);
+                let k = shifted_kernel(&da, 0, src, b, i, d.p);
                 for j in 0..l {
                     out[(i - 1) * l + j] += alpha[j * m + a] * k;
                 }
@@ -868,6 +825,7 @@ impl<T: Real, const W: usize, const D: usize, const G: usize> KernelDictionaryAr
     }
 }
 
+/// One sample (u, y, p); a block row is [u (r), y (l), p (s)]. The output is the [`Step`].
 impl<T, SW, SD, SG> crate::Streaming<T> for KernelDictionary<T, SW, SD, SG>
 where
     T: Real,
@@ -875,15 +833,26 @@ where
     SD: AsRef<[T]> + AsMut<[T]>,
     SG: AsRef<[T]> + AsMut<[T]>,
 {
-    /// True when the sample completed a window that was accumulated (accumulating phase).
-    fn update(&mut self, u: &[T], y: &[T], p: &[T]) -> Result<bool, Error> {
-        KernelDictionary::update(self, u, y, p).map(|s| matches!(s, Step::Accumulated { .. }))
+    type Sample<'a> = (&'a [T], &'a [T], &'a [T]);
+    type Output = Step<T>;
+
+    fn update(&mut self, (u, y, p): Self::Sample<'_>) -> Result<Step<T>, Error> {
+        KernelDictionary::update(self, u, y, p)
+    }
+
+    fn row_len(&self) -> usize {
+        self.dims.r + self.dims.l + self.dims.s
+    }
+
+    fn sample<'a>(&self, row: &'a [T]) -> Self::Sample<'a> {
+        crate::window::split_sample(&self.dims, row)
     }
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::kernel::theorem10;
     use crate::window::window_storage_len;
     use rand::rngs::StdRng;
     use rand::{Rng, SeedableRng};

@@ -1,4 +1,5 @@
-//! Errors of the core, as values: the core never panics on data.
+//! Errors of the core, as values: the core never panics on data (DESIGN.md section 3;
+//! no paper equation lives here).
 
 use core::fmt;
 
@@ -93,6 +94,10 @@ impl fmt::Display for Error {
         }
     }
 }
+
+/// The core's errors are ordinary Rust errors (`core::error::Error`, stable since 1.81): a
+/// host wraps them with `?` into its own error types (thiserror's `#[from]`/`#[source]`).
+impl core::error::Error for Error {}
 
 /// Check a vector's length and finiteness before it touches any state.
 pub fn check_vec<T: crate::Real>(field: Field, v: &[T], expected: usize) -> Result<(), Error> {

@@ -1,11 +1,20 @@
-//! Kernels of the LPV-PBSID kernel method (kernel paper section 5), evaluated without
+//! Kernels of the LPV-PBSID kernel method (kernel paper section 5.2), evaluated without
 //! forming Z: Lemma 9 turns inner products of Kronecker products into products of inner
 //! products, so every entry costs O(p (m + r + l)) instead of O(q).
+//!
+//! One function per result of the kernel paper:
+//! - [`theorem10`]: Theorem 10 (kernels LPV), the one evaluation every kernel here calls.
+//! - [`dual_kernel`]: the kernel matrix Z^T Z + U^T U of the dual problem (19).
+//! - [`shifted_kernel`]: the row-block kernels sum_{j >= i} (Z^{i,j})^T Z^{1,j} of eq. (25)
+//!   (kernel paper; "eq. (25)" of the sparse paper is the noise covariance, not this), from
+//!   which Gamma^p K^p Z = [alpha kappa_1; ...; alpha kappa_f] is built
+//!   ([`crate::dictionary::KernelDictionary::state_candidate`] on the device, the host's
+//!   dual realization).
 
 use crate::real::{dot, Real};
 use crate::window::Samples;
 
-/// Theorem 10, generalised to the shifted windows of eq. (23)-(25):
+/// Kernel paper, Theorem 10, generalised to the shifted windows of eq. (23)-(25):
 ///
 /// sum_{t0 = t_start}^{p-1} ( prod_{t = t0}^{p-1} mu_{a+t}^T mu'_{b+t} ) z_{a+t0}^T z'_{b+t0}
 ///
@@ -31,6 +40,26 @@ pub fn theorem10<T: Real, X: Samples<T> + ?Sized, Y: Samples<T> + ?Sized>(
         acc += prod * dot(x.z(ta), y.z(b + t));
     }
     acc
+}
+
+/// Kernel paper, eq. (25): entry (a, b) of sum_{j=i}^{p} (Z^{i,j})^T Z^{1,j} (Z^{i,j} of
+/// eq. (23)), the kernel of row block `i` (1-based, 1..=p) of Gamma^p K^p Z: row block i,
+/// column b of eq. (25) is alpha times the vector of these entries over a. Column a of
+/// Z^{i,j} is built from samples a..a+p-i of `x` and column b of Z^{1,j} from samples
+/// b..b+p-1 of `y`; `a` indexes `x` as in [`theorem10`] (a dictionary window that starts at
+/// its own sample 0 passes a = 0). Row block 1 is the plain Z^T Z entry. `i` = 0 is taken
+/// as 1.
+#[inline]
+pub fn shifted_kernel<T: Real, X: Samples<T> + ?Sized, Y: Samples<T> + ?Sized>(
+    x: &X,
+    a: usize,
+    y: &Y,
+    b: usize,
+    i: usize,
+    p: usize,
+) -> T {
+    let shift = i.saturating_sub(1);
+    theorem10(x, a as isize - shift as isize, y, b, shift, p)
 }
 
 /// Kernel entry (a, b) of the dual problem (19): [Z^T Z + U^T U]_{ab}, the U^T U term only
@@ -116,6 +145,7 @@ mod tests {
                 }
                 let k = theorem10(&slab, a as isize - (i as isize - 1), &slab, b, i - 1, d.p);
                 assert!((e - k).abs() < 1e-9 * (1.0 + e.abs()), "{a} {b} {e} {k}");
+                assert_eq!(shifted_kernel(&slab, a, &slab, b, i, d.p), k);
             }
         }
     }

@@ -523,6 +523,85 @@ where
     }
 }
 
+/// One sample (u, y, p) of problem (13)'s data; a block row is [u (r), y (l), p (s)]. The
+/// output says whether the sample completed a window whose vector was accumulated.
+impl<T, SW, SG, SR> crate::Streaming<T> for PbsidStats<T, SW, SG, SR>
+where
+    T: Real,
+    SW: AsRef<[T]> + AsMut<[T]>,
+    SG: AsRef<[T]> + AsMut<[T]>,
+    SR: AsRef<[T]> + AsMut<[T]>,
+{
+    type Sample<'a> = (&'a [T], &'a [T], &'a [T]);
+    type Output = bool;
+
+    fn update(&mut self, (u, y, p): Self::Sample<'_>) -> Result<bool, Error> {
+        PbsidStats::update(self, u, y, p)
+    }
+
+    fn row_len(&self) -> usize {
+        let d = self.dims();
+        d.r + d.l + d.s
+    }
+
+    fn sample<'a>(&self, row: &'a [T]) -> Self::Sample<'a> {
+        crate::window::split_sample(&self.window.dims(), row)
+    }
+}
+
+/// Merging statistics sums their Grams; dimensions and layout must agree. The windows are
+/// not merged (each source keeps its own partial window).
+impl<T, SW, SG, SR, SW2, SG2, SR2> crate::Merge<PbsidStats<T, SW2, SG2, SR2>>
+    for PbsidStats<T, SW, SG, SR>
+where
+    T: Real,
+    SW: AsRef<[T]> + AsMut<[T]>,
+    SG: AsRef<[T]> + AsMut<[T]>,
+    SR: AsRef<[T]> + AsMut<[T]>,
+    SW2: AsRef<[T]> + AsMut<[T]>,
+    SG2: AsRef<[T]> + AsMut<[T]>,
+    SR2: AsRef<[T]> + AsMut<[T]>,
+{
+    fn merge(&mut self, other: &PbsidStats<T, SW2, SG2, SR2>) -> Result<(), Error> {
+        if self.dims() != other.dims() || self.layout != other.layout {
+            return Err(Error::Mismatch);
+        }
+        self.gram.merge(&other.gram)
+    }
+}
+
+/// One vector w (a block row is w, `dim` values). The block update is
+/// [`Gram::update_batch`]: register-blocked, and atomic (on error nothing changes).
+impl<T: Real, S: AsRef<[T]> + AsMut<[T]>> crate::Streaming<T> for Gram<T, S> {
+    type Sample<'a> = &'a [T];
+    type Output = ();
+
+    fn update(&mut self, w: &[T]) -> Result<(), Error> {
+        Gram::update(self, w)
+    }
+
+    fn row_len(&self) -> usize {
+        self.dim
+    }
+
+    fn sample<'a>(&self, row: &'a [T]) -> &'a [T] {
+        row
+    }
+
+    fn update_block(&mut self, rows: &[T]) -> Result<(), Error> {
+        let w = crate::streaming::check_block(rows.len(), self.dim)?;
+        self.update_batch(rows, rows.len() / w)
+    }
+}
+
+impl<T: Real, S: AsRef<[T]> + AsMut<[T]>, S2: AsRef<[T]> + AsMut<[T]>> crate::Merge<Gram<T, S2>>
+    for Gram<T, S>
+{
+    fn merge(&mut self, other: &Gram<T, S2>) -> Result<(), Error> {
+        Gram::merge(self, other)
+    }
+}
+
 /// Statically sized storage for [`PbsidStats`] (firmware): `W` window values, `G` Gram
 /// values, `R` vector values; compute them with [`window_storage_len`], [`packed_len`]
 /// and [`stat_vector_len_const`] in `const` items.

@@ -5,6 +5,7 @@
 
 use crate::error::{check_vec, Error, Field};
 use crate::real::Real;
+use crate::ring::Ring;
 
 /// Dimensions of an LPV-PBSID problem: `r` inputs, `l` outputs, `s` scheduling signals
 /// (m = s + 1 local models, the affine 1 is implicit) and past window `p`.
@@ -104,6 +105,15 @@ impl PbsidDims {
     }
 }
 
+/// Split a block row [u (r), y (l), p (s)] (the sample layout of [`crate::Streaming`]
+/// blocks and of the wire) into (u, y, p). A short row gives short slices (which the
+/// update then rejects), never a panic.
+pub(crate) fn split_sample<'a, T>(d: &PbsidDims, row: &'a [T]) -> (&'a [T], &'a [T], &'a [T]) {
+    let (u, rest) = row.split_at(d.r.min(row.len()));
+    let (y, p) = rest.split_at(d.l.min(rest.len()));
+    (u, y, p)
+}
+
 /// A source of consecutive samples, indexed from 0 (oldest): the ring buffer on the device,
 /// a data slab on the host. Kernel evaluations (Theorem 10) are written against this.
 pub trait Samples<T: Real> {
@@ -145,6 +155,12 @@ impl<'a, T: Real> Slab<'a, T> {
         }
         Ok(Slab { data, r, l, m })
     }
+    /// Wrap whole rows known to have the right length (the core's own storage).
+    #[inline(always)]
+    pub(crate) fn from_rows(data: &'a [T], r: usize, l: usize, m: usize) -> Self {
+        Slab { data, r, l, m }
+    }
+
     #[inline(always)]
     fn row(&self, t: usize) -> &'a [T] {
         let w = self.r + self.l + self.m;
@@ -174,20 +190,15 @@ impl<T: Real> Samples<T> for Slab<'_, T> {
     }
 }
 
-/// Ring buffer of the last p + 1 samples, in caller-provided storage `S` (an array
-/// `[T; window_storage_len(..)]` on the device, a `Vec` on the host). One spare slot makes
-/// [`Window::unpush`] possible, so a caller can undo a push when a later step fails.
+/// The last p + 1 samples [u, y, mu] on a [`Ring`] in caller-provided storage `S` (an
+/// array `[T; window_storage_len(..)]` on the device, a `Vec` on the host). The ring's spare
+/// slot makes [`Window::unpush`] possible, so a caller can undo a push when a later step fails.
 ///
 /// Size: (p + 2)(r + l + s + 1) values; B1 with p = 3 needs 50 values (200 bytes in f32).
 #[derive(Debug, Clone)]
 pub struct Window<T, S> {
     dims: PbsidDims,
-    buf: S,
-    /// Slot the next sample is written to.
-    head: usize,
-    /// Number of valid samples, at most p + 1.
-    len: usize,
-    _t: core::marker::PhantomData<T>,
+    ring: Ring<T, S>,
 }
 
 impl<T: Real, S: AsRef<[T]> + AsMut<[T]>> Window<T, S> {
@@ -202,20 +213,13 @@ impl<T: Real, S: AsRef<[T]> + AsMut<[T]>> Window<T, S> {
         }
         Ok(Window {
             dims,
-            buf,
-            head: 0,
-            len: 0,
-            _t: core::marker::PhantomData,
+            ring: Ring::new(dims.sample_len(), dims.p + 1, buf)?,
         })
     }
 
     /// The dimensions.
     pub fn dims(&self) -> PbsidDims {
         self.dims
-    }
-
-    fn slots(&self) -> usize {
-        self.dims.p + 2
     }
 
     /// Append sample (u, y, p); the oldest drops out once p + 1 are held. Checks lengths
@@ -225,55 +229,45 @@ impl<T: Real, S: AsRef<[T]> + AsMut<[T]>> Window<T, S> {
         check_vec(Field::Input, u, d.r)?;
         check_vec(Field::Output, y, d.l)?;
         check_vec(Field::Scheduling, p, d.s)?;
-        let w = d.sample_len();
-        let off = self.head * w;
-        let row = &mut self.buf.as_mut()[off..off + w];
-        row[..d.r].copy_from_slice(u);
-        row[d.r..d.r + d.l].copy_from_slice(y);
-        row[d.r + d.l] = T::ONE;
-        row[d.r + d.l + 1..].copy_from_slice(p);
-        self.head = (self.head + 1) % self.slots();
-        if self.len < d.p + 1 {
-            self.len += 1;
-        }
+        self.ring.push_with(|row| {
+            row[..d.r].copy_from_slice(u);
+            row[d.r..d.r + d.l].copy_from_slice(y);
+            row[d.r + d.l] = T::ONE;
+            row[d.r + d.l + 1..].copy_from_slice(p);
+        });
         Ok(())
     }
 
     /// Undo the most recent push (the spare slot still holds the sample that dropped out).
     /// `was_len` is `len()` before that push.
     pub fn unpush(&mut self, was_len: usize) {
-        self.head = (self.head + self.slots() - 1) % self.slots();
-        self.len = was_len;
+        self.ring.unpush(was_len);
     }
 
     /// Number of samples held (at most p + 1).
     pub fn len(&self) -> usize {
-        self.len
+        self.ring.len()
     }
 
     /// True when no sample is held.
     pub fn is_empty(&self) -> bool {
-        self.len == 0
+        self.ring.is_empty()
     }
 
     /// True once p + 1 samples are held and a regressor can be formed.
     pub fn is_full(&self) -> bool {
-        self.len == self.dims.p + 1
+        self.ring.is_full()
     }
 
     /// Forget all samples (e.g. between experiments: windows never straddle a gap).
     pub fn clear(&mut self) {
-        self.len = 0;
-        self.head = 0;
+        self.ring.clear();
     }
 
     #[inline(always)]
     fn row(&self, t: usize) -> &[T] {
         // t = 0 is the oldest held sample.
-        let slots = self.slots();
-        let slot = (self.head + slots - self.len + t) % slots;
-        let w = self.dims.sample_len();
-        &self.buf.as_ref()[slot * w..(slot + 1) * w]
+        self.ring.oldest(t)
     }
 
     /// Write w_k = [z_k^p; u_{k+p}; y_{k+p}] into `out` (length `dims.stat_len()`), the
@@ -315,7 +309,7 @@ impl<T: Real, S: AsRef<[T]> + AsMut<[T]>> Samples<T> for Window<T, S> {
         &self.row(t)[d.r + d.l..]
     }
     fn len(&self) -> usize {
-        self.len
+        self.ring.len()
     }
 }
 
@@ -423,7 +417,7 @@ mod tests {
             })
         );
         assert_eq!(w.len(), before.len());
-        assert_eq!(w.head, before.head);
+        assert_eq!(w.ring.head(), before.ring.head());
         assert!(w.push(&[1.0, 2.0], &[1.0], &[0.5]).is_err());
     }
 
