@@ -7,11 +7,12 @@
 //! docs/bench-diagnose.md.
 
 use criterion::{black_box, criterion_group, criterion_main, BenchmarkId, Criterion};
-use lpvid_host::cli::{run, score};
+use lpvid_host::cli::run;
 use lpvid_host::data::Dataset;
 use lpvid_host::diagnose::refit::{fit_spec, Spec};
 use lpvid_host::diagnose::{diagnose, Options};
 use lpvid_host::model::ModelFile;
+use lpvid_host::pipeline::score;
 use lpvid_host::simulate::Mode;
 use lpvid_host::systems;
 

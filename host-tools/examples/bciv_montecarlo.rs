@@ -27,10 +27,10 @@
 use std::time::Instant;
 
 use lpvid_host::arx::{fit, model_file, ArxFit, ArxOptions, Estimator, LambdaChoice, SigmaChoice};
-use lpvid_host::cli::score;
 use lpvid_host::data::Dataset;
 use lpvid_host::lpvss::Signals;
 use lpvid_host::model::SignalMap;
+use lpvid_host::pipeline::score;
 use lpvid_host::simulate::Mode;
 use lpvid_host::systems::b6;
 use serde_json::json;

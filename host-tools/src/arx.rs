@@ -59,11 +59,10 @@
 //! statistics pulled from a device.
 
 use std::fmt::Write as _;
-use std::io::Write;
 use std::ops::ControlFlow;
-use std::path::{Path, PathBuf};
 
-use lpvid::arx::{basis_len, write_exponents, ArxDims, ArxWindow};
+pub use lpvid::arx::ArxDims;
+use lpvid::arx::{basis_len, write_exponents, ArxWindow};
 use lpvid::bciv::{BcivDims, BcivStats};
 use lpvid::lasso::{
     refit, refit_work_len, work_len, CoordinateDescent, Dense, Penalty, Problem, Settings,
@@ -72,11 +71,9 @@ use lpvid::Real;
 
 use serde_json::{json, Value};
 
-use crate::cli::{fingerprint, score, CliError, Score};
 use crate::data::{DataError, Dataset};
 use crate::lpvss::Signals;
 use crate::model::{describe, ArxModel, Factor, ModelFile, ModelKind, SignalMap};
-use crate::simulate::{simulate, Mode};
 
 /// Statistics on the host: f64 values in `Vec`s.
 pub type Stats = BcivStats<f64, Vec<f64>, Vec<f64>>;
@@ -331,17 +328,53 @@ impl ArxOptions {
     }
 }
 
-/// What went wrong, in words (the CLI adds file names where it knows them).
+/// What went wrong (front ends add file names where they know them).
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
-#[error("{0}")]
-pub struct ArxError(pub String);
+pub enum ArxError {
+    /// The settings are inconsistent or out of range (na, nb, ng, sigma, lambda, grids).
+    #[error("{0}")]
+    Options(String),
+    /// The signals cannot be used for this model (too short, wrong channels).
+    #[error("{0}")]
+    Signals(String),
+    /// A core statistic failed (`context` says which step).
+    #[error("{context}: {error}")]
+    Core {
+        /// The step that failed.
+        context: String,
+        /// The core's error.
+        error: lpvid::Error,
+    },
+    /// The estimation could not proceed (no statistics, a diverging instrument model).
+    #[error("{0}")]
+    Estimation(String),
+}
+
+#[cfg(test)]
+impl ArxError {
+    /// The text of an `Options` error ("" for any other variant): tests check the variant
+    /// and what it names.
+    fn options_text(&self) -> &str {
+        match self {
+            ArxError::Options(m) => m,
+            _ => "",
+        }
+    }
+}
 
 fn err<T>(msg: impl Into<String>) -> Result<T, ArxError> {
-    Err(ArxError(msg.into()))
+    Err(ArxError::Estimation(msg.into()))
+}
+
+fn options_err<T>(msg: impl Into<String>) -> Result<T, ArxError> {
+    Err(ArxError::Options(msg.into()))
 }
 
 fn core_err(ctx: &str, e: lpvid::Error) -> ArxError {
-    ArxError(format!("{ctx}: {e}"))
+    ArxError::Core {
+        context: ctx.to_string(),
+        error: e,
+    }
 }
 
 /// One pass of instrument refinement, as reported.
@@ -459,7 +492,7 @@ pub fn basis_products(signals: &[Vec<Factor>], ng: usize) -> Result<Vec<Vec<Fact
 
 /// Exponent rows of the basis (core order): `basis_len(s, ng)` rows of `s` powers.
 pub fn exponents(s: usize, ng: usize) -> Result<Vec<Vec<u16>>, ArxError> {
-    let n = basis_len(s, ng).ok_or_else(|| ArxError("basis too large".into()))?;
+    let n = basis_len(s, ng).ok_or_else(|| ArxError::Options("basis too large".into()))?;
     let mut flat = vec![0u16; n * s];
     write_exponents(s, ng, &mut flat).map_err(|e| core_err("scheduling basis", e))?;
     Ok((0..n).map(|m| flat[m * s..(m + 1) * s].to_vec()).collect())
@@ -648,7 +681,7 @@ pub fn accumulate_blocks<T: Real>(
                     .map_err(|e| core_err(&format!("sample {k}"), e))?;
             } else {
                 let yh = sim.simulate_step(&theta_t, &u, &p).map_err(|_| {
-                    ArxError(format!(
+                    ArxError::Estimation(format!(
                         "the free-run simulation of the current model diverges at sample {k}: \
                          no instruments can be built from it"
                     ))
@@ -705,7 +738,7 @@ pub fn accumulate<T: Real>(
 ) -> Result<Stats, ArxError> {
     let mut v = accumulate_blocks::<T>(sig, dims, rho, instr, 1)?;
     v.pop()
-        .ok_or_else(|| ArxError("no statistics accumulated".into()))
+        .ok_or_else(|| ArxError::Estimation("no statistics accumulated".into()))
 }
 
 /// Sum of block statistics (core merge).
@@ -713,7 +746,7 @@ fn total(blocks: &[Stats]) -> Result<Stats, ArxError> {
     let mut it = blocks.iter();
     let mut t = it
         .next()
-        .ok_or_else(|| ArxError("no statistics accumulated".into()))?
+        .ok_or_else(|| ArxError::Estimation("no statistics accumulated".into()))?
         .clone();
     for b in it {
         t.merge(b).map_err(|e| core_err("merging statistics", e))?;
@@ -1255,24 +1288,24 @@ fn select(
 
 fn check_signals(sig: &Signals, what: &str, dims: &ArxDims) -> Result<(), ArxError> {
     if sig.y.ncols() != 1 {
-        return err(format!(
+        return Err(ArxError::Signals(format!(
             "{what}: an lpv-arx model has one output, the data has {}",
             sig.y.ncols()
-        ));
+        )));
     }
     if sig.u.ncols() != dims.r || sig.p.ncols() != dims.s {
-        return err(format!(
+        return Err(ArxError::Signals(format!(
             "{what}: {} inputs and {} scheduling signals, the model has {} and {}",
             sig.u.ncols(),
             sig.p.ncols(),
             dims.r,
             dims.s
-        ));
+        )));
     }
     let nt = dims.n_theta().unwrap_or(usize::MAX);
     let need = dims.depth() + nt + 1;
     if sig.len() < need {
-        return err(format!(
+        return Err(ArxError::Signals(format!(
             "{what}: {} samples, but {} parameters (na = {}, nb = {}, ng = {}) need at least {need} \
              (max(na, nb) + n_theta + 1; many more for a useful fit)",
             sig.len(),
@@ -1280,17 +1313,17 @@ fn check_signals(sig: &Signals, what: &str, dims: &ArxDims) -> Result<(), ArxErr
             dims.na,
             dims.nb,
             dims.ng
-        ));
+        )));
     }
     for j in 0..sig.p.ncols() {
         let c = sig.p.column(j);
         if c.iter().all(|v| *v == c[0]) {
-            return err(format!(
+            return Err(ArxError::Signals(format!(
                 "{what}: scheduling signal p{} is constant ({}): the basis functions of degree >= 1 \
                  are then constant too and the regression is rank deficient",
                 j + 1,
                 c[0]
-            ));
+            )));
         }
     }
     Ok(())
@@ -1301,48 +1334,50 @@ pub fn check_options(opts: &ArxOptions, s: usize) -> Result<(), ArxError> {
     let corrected = opts.estimator == Estimator::Bciv
         && !matches!(opts.sigma, SigmaChoice::Fixed(v) if v == 0.0);
     if corrected && opts.ng == 0 {
-        return err(
+        return options_err(
             "noise correction (--estimator bciv with --sigma-p auto or > 0) needs --ng >= 1: with \
              ng = 0 the model does not depend on the scheduling, so scheduling noise has nothing \
              to correct",
         );
     }
     if corrected && s == 0 {
-        return err("noise correction needs a scheduling signal (p1 column): there is none");
+        return options_err(
+            "noise correction needs a scheduling signal (p1 column): there is none",
+        );
     }
     if opts.estimator != Estimator::Bciv && matches!(opts.sigma, SigmaChoice::Fixed(v) if v != 0.0)
     {
-        return err(format!(
+        return options_err(format!(
             "--sigma-p applies to --estimator bciv only (the {} cost has no noise correction)",
             opts.estimator.name()
         ));
     }
     if let Some(g) = &opts.sigma_grid {
         if g.is_empty() {
-            return err("the sigma grid is empty: give at least one value >= 0");
+            return options_err("the sigma grid is empty: give at least one value >= 0");
         }
         if let Some(v) = g.iter().find(|v| !v.is_finite() || **v < 0.0) {
-            return err(format!(
+            return options_err(format!(
                 "the sigma grid holds {v}: values must be finite and >= 0"
             ));
         }
     }
     if let Some(r) = &opts.noise_ratios {
         if r.len() != s {
-            return err(format!(
+            return options_err(format!(
                 "{} noise ratios for {s} scheduling signals",
                 r.len()
             ));
         }
         if r.iter().any(|v| !v.is_finite() || *v < 0.0) {
-            return err("noise ratios must be finite and >= 0");
+            return options_err("noise ratios must be finite and >= 0");
         }
     }
     if !(opts.lambda_min_ratio > 0.0 && opts.lambda_min_ratio <= 1.0) {
-        return err("lambda_min_ratio must be in (0, 1]");
+        return options_err("lambda_min_ratio must be in (0, 1]");
     }
     if opts.n_lambda == 0 {
-        return err("the lambda path needs at least one point");
+        return options_err("the lambda path needs at least one point");
     }
     Ok(())
 }
@@ -1499,7 +1534,9 @@ pub fn fit(
             }
         }
         if pick == 0 {
-            return Err(last_err.unwrap_or_else(|| ArxError("no IV pass was possible".into())));
+            return Err(
+                last_err.unwrap_or_else(|| ArxError::Estimation("no IV pass was possible".into()))
+            );
         }
     }
     let (mut choice, curve, sigma_rule, st_t, st_c) = states.swap_remove(pick);
@@ -1616,92 +1653,15 @@ pub fn support_text(report: &ArxReport) -> String {
 }
 
 // ---------------------------------------------------------------------------------------------
-// The `lpvid arx` command (DESIGN.md section 5)
+// Data checks and the model file
 // ---------------------------------------------------------------------------------------------
-
-/// `lpvid arx`: identify an LPV-ARX model (LS, refined IV, BC-IV, BC-IV-LASSO).
-#[derive(Debug, Clone, clap::Args)]
-pub struct ArxArgs {
-    /// Training data (CSV: u1.., y1, p1.. columns).
-    #[arg(long)]
-    pub train: PathBuf,
-    /// Calibration data (same columns) for the cross-validation of lambda and sigma_eta;
-    /// without it the last fifth of the training data is held out.
-    #[arg(long)]
-    pub calib: Option<PathBuf>,
-    /// Validation data, scored by free-run simulation after the fit.
-    #[arg(long)]
-    pub val: Option<PathBuf>,
-    /// Output lags n_a.
-    #[arg(long)]
-    pub na: usize,
-    /// Input lags 0..=n_b.
-    #[arg(long)]
-    pub nb: usize,
-    /// Polynomial degree n_g of the scheduling basis (all monomials of total degree <= n_g).
-    #[arg(long)]
-    pub ng: usize,
-    /// Cost: ls (least squares), iv (refined instrumental variables, eq. (8)) or bciv
-    /// (bias-corrected IV, eq. (10)).
-    #[arg(long, default_value = "bciv")]
-    pub estimator: Estimator,
-    /// Scheduling-noise standard deviation sigma_eta, or `auto` (section 5.3); bciv only
-    /// (default auto for bciv).
-    #[arg(long = "sigma-p")]
-    pub sigma_p: Option<SigmaChoice>,
-    /// l1 weight lambda of cost (10) in the paper's convention, `cv` (cross-validation on the
-    /// calibration cost), or 0 for the full unpenalised model.
-    #[arg(long, default_value = "cv")]
-    pub lambda: LambdaChoice,
-    /// sigma grid of `--sigma-p auto`: LO:STEP:HI or a comma-separated list (default 31
-    /// points from 0 to 0.6 x the smallest standard deviation of the scheduling signals).
-    #[arg(long = "sigma-grid")]
-    pub sigma_grid: Option<String>,
-    /// Statistics the sigma cost is minimised on once the structure is fixed: all
-    /// (training + calibration, sharper) or calib (calibration only, the paper).
-    #[arg(long = "sigma-data", default_value = "all")]
-    pub sigma_data: SigmaData,
-    /// Plain l1 penalty (unit weights) instead of adaptive weights 1/|theta_full|.
-    #[arg(long)]
-    pub plain_l1: bool,
-    /// Keep the penalised (shrunk) Lasso estimate instead of the de-biased refit.
-    #[arg(long)]
-    pub no_debias: bool,
-    /// Cross-validation takes the lowest calibration cost instead of the sparsest structure
-    /// within one standard error of it.
-    #[arg(long)]
-    pub min_cost: bool,
-    /// Do not refine sigma by golden-section search between grid points.
-    #[arg(long)]
-    pub no_refine: bool,
-    /// Refit the selected structure on the training data only (default: training +
-    /// calibration once lambda and sigma are chosen).
-    #[arg(long)]
-    pub refit_train_only: bool,
-    /// Largest number of instrument refinements (iv, bciv).
-    #[arg(long, default_value_t = 10)]
-    pub max_iter: usize,
-    /// Accumulate the statistics in f32, as a device does (solves stay in f64).
-    #[arg(long)]
-    pub f32: bool,
-    /// Noise-variance ratios rho_s per scheduling signal (sigma_s^2 = rho_s sigma^2),
-    /// comma-separated; default all 1 (0: a noise-free signal).
-    #[arg(long = "noise-ratios")]
-    pub noise_ratios: Option<String>,
-    /// Where to write the model (JSON).
-    #[arg(long)]
-    pub out: PathBuf,
-    /// Print a JSON summary instead of the human one.
-    #[arg(long)]
-    pub json: bool,
-}
 
 /// Parse a sigma grid: `LO:STEP:HI` (inclusive) or `v1,v2,...`. An empty grid is an error.
 pub fn parse_sigma_grid(text: &str) -> Result<Vec<f64>, ArxError> {
     let num = |t: &str| -> Result<f64, ArxError> {
         match t.trim().parse::<f64>() {
             Ok(v) if v.is_finite() => Ok(v),
-            _ => err(format!(
+            _ => options_err(format!(
                 "--sigma-grid '{text}': '{t}' is not a finite number"
             )),
         }
@@ -1709,17 +1669,17 @@ pub fn parse_sigma_grid(text: &str) -> Result<Vec<f64>, ArxError> {
     let grid: Vec<f64> = if text.contains(':') {
         let parts: Vec<&str> = text.split(':').collect();
         if parts.len() != 3 {
-            return err(format!(
+            return options_err(format!(
                 "--sigma-grid '{text}': expected LO:STEP:HI (e.g. 0:0.02:0.5) or a list v1,v2,..."
             ));
         }
         let (lo, step, hi) = (num(parts[0])?, num(parts[1])?, num(parts[2])?);
         if step <= 0.0 {
-            return err(format!("--sigma-grid '{text}': the step must be > 0"));
+            return options_err(format!("--sigma-grid '{text}': the step must be > 0"));
         }
         let n = ((hi - lo) / step + 1e-9).floor();
         if n > 1e5 {
-            return err(format!("--sigma-grid '{text}': more than 100000 points"));
+            return options_err(format!("--sigma-grid '{text}': more than 100000 points"));
         }
         if n < 0.0 {
             Vec::new()
@@ -1733,54 +1693,16 @@ pub fn parse_sigma_grid(text: &str) -> Result<Vec<f64>, ArxError> {
             .collect::<Result<_, _>>()?
     };
     if grid.is_empty() {
-        return err(format!(
+        return options_err(format!(
             "--sigma-grid '{text}' is empty: give at least one sigma >= 0 (LO <= HI)"
         ));
     }
     if let Some(v) = grid.iter().find(|v| **v < 0.0) {
-        return err(format!(
+        return options_err(format!(
             "--sigma-grid '{text}' holds {v}: sigma must be >= 0"
         ));
     }
     Ok(grid)
-}
-
-fn options_from_args(a: &ArxArgs) -> Result<ArxOptions, ArxError> {
-    let mut o = ArxOptions::new(a.na, a.nb, a.ng);
-    o.estimator = a.estimator;
-    o.sigma = match (a.sigma_p, a.estimator) {
-        (Some(s), _) => s,
-        (None, Estimator::Bciv) => SigmaChoice::Auto,
-        (None, _) => SigmaChoice::Fixed(0.0),
-    };
-    o.lambda = a.lambda;
-    o.sigma_grid = a.sigma_grid.as_deref().map(parse_sigma_grid).transpose()?;
-    o.sigma_data = a.sigma_data;
-    o.adaptive = !a.plain_l1;
-    o.debias = !a.no_debias;
-    o.one_se = !a.min_cost;
-    o.refine_sigma = !a.no_refine;
-    o.refit_all = !a.refit_train_only;
-    o.max_iter = a.max_iter;
-    o.precision = if a.f32 {
-        Precision::F32
-    } else {
-        Precision::F64
-    };
-    o.noise_ratios = match &a.noise_ratios {
-        None => None,
-        Some(t) => Some(
-            t.split(',')
-                .map(|v| match v.trim().parse::<f64>() {
-                    Ok(x) if x.is_finite() && x >= 0.0 => Ok(x),
-                    _ => err(format!(
-                        "--noise-ratios '{t}': '{v}' is not a finite number >= 0"
-                    )),
-                })
-                .collect::<Result<_, _>>()?,
-        ),
-    };
-    Ok(o)
 }
 
 /// The model's channels of a data file: inputs u1.., outputs y1.., scheduling p1...
@@ -1790,7 +1712,7 @@ fn channels(ds: &Dataset) -> [Vec<String>; 3] {
 
 /// Check a data file for an LPV-ARX fit: one output, varying inputs and scheduling, enough
 /// rows. Errors name the file, line and column.
-fn check_dataset(
+pub fn check_dataset(
     ds: &Dataset,
     dims: &ArxDims,
     what: &str,
@@ -1855,7 +1777,7 @@ fn check_dataset(
 }
 
 /// The calibration file must have the training file's model columns (u, y, p channels).
-fn check_same_channels(train: &Dataset, cal: &Dataset) -> Result<(), DataError> {
+pub fn check_same_channels(train: &Dataset, cal: &Dataset) -> Result<(), DataError> {
     let (t, c) = (channels(train), channels(cal));
     for (tc, cc) in t.iter().zip(&c) {
         if let Some(extra) = cc.iter().find(|n| !tc.contains(n)) {
@@ -1888,19 +1810,6 @@ fn check_same_channels(train: &Dataset, cal: &Dataset) -> Result<(), DataError> 
     Ok(())
 }
 
-fn read_data(path: &Path) -> Result<(Dataset, Vec<u8>), DataError> {
-    let bytes = std::fs::read(path).map_err(|e| {
-        DataError::new(
-            path.display().to_string(),
-            None,
-            None,
-            format!("cannot read: {e}"),
-        )
-    })?;
-    let ds = Dataset::parse(&path.display().to_string(), &bytes[..])?;
-    Ok((ds, bytes))
-}
-
 /// The model file of a fit: the lpv-arx model, its signal map (scheduling basis functions as
 /// factor products) and the `fit` record.
 pub fn model_file(fit: &ArxFit, map: &SignalMap, record: Value) -> Result<ModelFile, ArxError> {
@@ -1913,14 +1822,6 @@ pub fn model_file(fit: &ArxFit, map: &SignalMap, record: Value) -> Result<ModelF
             outputs: map.outputs[..1].to_vec(),
         },
         fit: record,
-    })
-}
-
-fn file_record(path: &Path, ds: &Dataset, bytes: &[u8]) -> Value {
-    json!({
-        "file": path.display().to_string(),
-        "rows": ds.len(),
-        "fnv1a64": fingerprint(bytes),
     })
 }
 
@@ -1988,242 +1889,10 @@ pub fn fit_record(opts: &ArxOptions, fit: &ArxFit, grid: &[f64], files: Value) -
     rec
 }
 
-fn out_err(e: std::io::Error) -> CliError {
-    CliError::Other(format!("cannot write output: {e}"))
-}
-
-/// Run `lpvid arx`: read and check the files, fit, write the model, print the summary.
-pub fn arx_cmd(a: &ArxArgs, out: &mut dyn Write) -> Result<(), CliError> {
-    let opts = options_from_args(a).map_err(|e| CliError::Other(e.0))?;
-    let (train, tbytes) = read_data(&a.train)?;
-    let map = SignalMap::default_for(&train)?;
-    let s = train.channels('p').len();
-    check_options(&opts, s).map_err(|e| CliError::Other(e.0))?;
-    let dims = ArxDims::new(train.channels('u').len(), s, a.na, a.nb, a.ng).map_err(|e| {
-        CliError::Other(format!("na = {}, nb = {}, ng = {}: {e}", a.na, a.nb, a.ng))
-    })?;
-    let needs_cv = matches!(opts.lambda, LambdaChoice::Cv)
-        || (opts.estimator == Estimator::Bciv && opts.sigma == SigmaChoice::Auto);
-    check_dataset(
-        &train,
-        &dims,
-        "training file",
-        a.calib.is_none() && needs_cv,
-    )?;
-    let calib = match &a.calib {
-        Some(p) => {
-            let (c, b) = read_data(p)?;
-            check_same_channels(&train, &c)?;
-            check_dataset(&c, &dims, "calibration file", false)?;
-            Some((c, b))
-        }
-        None => None,
-    };
-    let val = match &a.val {
-        Some(p) => {
-            let v = Dataset::read_csv(p)?;
-            check_same_channels(&train, &v)?;
-            Some(v)
-        }
-        None => None,
-    };
-    let tsig = map.evaluate(&train)?;
-    let csig = match &calib {
-        Some((c, _)) => Some(map.evaluate(c)?),
-        None => None,
-    };
-    let grid = match &opts.sigma_grid {
-        Some(g) => g.clone(),
-        None => default_sigma_grid(&tsig.p),
-    };
-    let fitted = fit(&tsig, csig.as_ref(), &opts)
-        .map_err(|e| CliError::Other(format!("{}: {}", train.source, e.0)))?;
-    let files = json!({
-        "train": file_record(&a.train, &train, &tbytes),
-        "calib": match (&a.calib, &calib) {
-            (Some(p), Some((c, b))) => file_record(p, c, b),
-            _ => Value::Null,
-        },
-    });
-    let record = fit_record(&opts, &fitted, &grid, files);
-    let model = model_file(&fitted, &map, record).map_err(|e| CliError::Other(e.0))?;
-    let train_score = score(&model, &train, Mode::FreeRun)?;
-    // with noisy scheduling a locally unstable plant's free run may blow up on the training
-    // data even for the right model: say so rather than print a bare 0 %
-    let (_, yhat) = simulate(&model, &train, Mode::FreeRun)?;
-    let train_diverged = yhat.iter().any(|v| !v.is_finite());
-    let val_score = match &val {
-        Some(v) => Some(score(&model, v, Mode::FreeRun)?),
-        None => None,
-    };
-    model.write(&a.out)?;
-    if a.json {
-        let summary = json!({
-            "command": "arx",
-            "estimator": fitted.report.estimator,
-            "sigma_p": fitted.report.sigma_p,
-            "lambda": fitted.report.lambda,
-            "support": fitted.report.support_names,
-            "iterations": fitted.report.iterations,
-            "converged": fitted.report.converged,
-            "costs": {"train": fitted.report.train_cost, "calib": fitted.report.calib_cost},
-            "train": train_score,
-            "train_free_run_diverged": train_diverged,
-            "val": val_score,
-            "out": a.out.display().to_string(),
-            "fit": model.fit,
-        });
-        writeln!(
-            out,
-            "{}",
-            serde_json::to_string_pretty(&summary).unwrap_or_default()
-        )
-        .map_err(out_err)?;
-    } else {
-        print_summary(
-            &fitted,
-            &opts,
-            &train,
-            (&train_score, train_diverged),
-            val_score.as_ref(),
-            out,
-        )
-        .map_err(out_err)?;
-        writeln!(out, "  model written to {}", a.out.display()).map_err(out_err)?;
-    }
-    Ok(())
-}
-
-fn print_summary(
-    f: &ArxFit,
-    opts: &ArxOptions,
-    train: &Dataset,
-    (train_score, train_diverged): (&Score, bool),
-    val: Option<&Score>,
-    out: &mut dyn Write,
-) -> std::io::Result<()> {
-    let r = &f.report;
-    let d = &f.dims;
-    let title = match (opts.estimator, opts.lambda) {
-        (Estimator::Ls, LambdaChoice::Fixed(0.0)) => "LS",
-        (Estimator::Ls, _) => "LS-LASSO",
-        (Estimator::Iv, LambdaChoice::Fixed(0.0)) => "IV",
-        (Estimator::Iv, _) => "IV-LASSO",
-        (Estimator::Bciv, LambdaChoice::Fixed(0.0)) => "BC-IV",
-        (Estimator::Bciv, _) => "BC-IV-LASSO",
-    };
-    writeln!(
-        out,
-        "LPV-ARX {title} on {}: {} samples, {} inputs, {} scheduling signals",
-        train.source,
-        train.len(),
-        d.r,
-        d.s
-    )?;
-    writeln!(
-        out,
-        "  na = {}, nb = {}, ng = {}: {} parameters; calibration: {} ({} regressors)",
-        d.na, d.nb, d.ng, r.n_theta, r.calibration, r.samples.1
-    )?;
-    if opts.estimator != Estimator::Ls {
-        writeln!(
-            out,
-            "  instruments: free-run simulation of the current model, {} refinement{} ({})",
-            r.iterations,
-            if r.iterations == 1 { "" } else { "s" },
-            if r.converged {
-                "settled"
-            } else if r.cycle {
-                "stopped on a cycle between structures"
-            } else {
-                "not settled within --max-iter"
-            }
-        )?;
-    }
-    if opts.estimator == Estimator::Bciv {
-        writeln!(out, "  sigma_eta = {:.4} ({})", r.sigma_p, r.sigma_rule)?;
-    }
-    match r.lambda {
-        Some(l) => writeln!(
-            out,
-            "  lambda = {l:.4e} (paper convention; {}; weights {}; {})",
-            r.lambda_rule,
-            r.weights,
-            if opts.debias {
-                format!("de-biased refit on {}", r.final_refit)
-            } else {
-                "penalised estimate".into()
-            }
-        )?,
-        None => writeln!(out, "  no penalty: the full model")?,
-    }
-    writeln!(
-        out,
-        "  structure: {} of {} coefficients non-zero",
-        r.support.len(),
-        r.n_theta
-    )?;
-    let sched: Vec<Vec<Factor>> = (1..=d.s)
-        .map(|i| vec![Factor::col(&format!("p{i}"))])
-        .collect();
-    let basis = basis_names(&sched, d.ng).unwrap_or_default();
-    for &j in r.support.iter().take(40) {
-        writeln!(
-            out,
-            "    {:<16} {:>+12.6}",
-            coef_name(d, j, &basis),
-            r.theta[j]
-        )?;
-    }
-    if r.support.len() > 40 {
-        writeln!(out, "    ... ({} more)", r.support.len() - 40)?;
-    }
-    match r.calib_cost {
-        Some(c) => writeln!(
-            out,
-            "  J_CIV(theta, 0, N): training {:.4e}, calibration {c:.4e}",
-            r.train_cost
-        )?,
-        None => writeln!(out, "  J_CIV(theta, 0, N): training {:.4e}", r.train_cost)?,
-    }
-    if train_diverged {
-        writeln!(
-            out,
-            "  {} (free-run): the simulation diverges on the measured scheduling, no score",
-            train_score.file
-        )?;
-    } else {
-        // the free run uses the measured scheduling: with sigma_eta > 0 that is noisy, and
-        // the score reflects the noise as much as the model
-        let note = if r.sigma_p > 0.0 {
-            format!(
-                "  (simulated with the noisy scheduling, sigma_eta ~ {:.3}: the validation score \
-                 on clean data is the measure of the model)",
-                r.sigma_p
-            )
-        } else {
-            String::new()
-        };
-        writeln!(
-            out,
-            "  {} ({}): VAF {:.3} %, BFR {:.2} %{note}",
-            train_score.file, train_score.mode, train_score.vaf_mean, train_score.bfr_mean
-        )?;
-    }
-    if let Some(sc) = val {
-        writeln!(
-            out,
-            "  {} ({}): VAF {:.3} %, BFR {:.2} %",
-            sc.file, sc.mode, sc.vaf_mean, sc.bfr_mean
-        )?;
-    }
-    Ok(())
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::simulate::arx_run;
+    use crate::simulate::{arx_run, Mode};
     use nalgebra::DMatrix;
 
     #[test]
@@ -2260,11 +1929,14 @@ mod tests {
             "-0.1",
         ] {
             let e = parse_sigma_grid(bad).unwrap_err();
-            assert!(e.0.contains("--sigma-grid"), "{bad}: {e}");
+            assert!(
+                matches!(&e, ArxError::Options(m) if m.contains("--sigma-grid")),
+                "{bad}: {e}"
+            );
         }
         assert!(parse_sigma_grid("0.5:0.1:0.2")
             .unwrap_err()
-            .0
+            .options_text()
             .contains("empty"));
     }
 
@@ -2323,26 +1995,35 @@ mod tests {
     #[test]
     fn option_errors_are_clear() {
         let mut o = ArxOptions::new(1, 0, 0);
-        assert!(check_options(&o, 1).unwrap_err().0.contains("--ng >= 1"));
+        assert!(check_options(&o, 1)
+            .unwrap_err()
+            .options_text()
+            .contains("--ng >= 1"));
         o.sigma = SigmaChoice::Fixed(0.0);
         assert!(check_options(&o, 1).is_ok());
         let mut o = ArxOptions::new(1, 0, 2);
         assert!(check_options(&o, 0)
             .unwrap_err()
-            .0
+            .options_text()
             .contains("scheduling signal"));
         o.sigma_grid = Some(Vec::new());
         assert!(check_options(&o, 1)
             .unwrap_err()
-            .0
+            .options_text()
             .contains("sigma grid is empty"));
         let mut o = ArxOptions::new(1, 0, 2);
         o.estimator = Estimator::Ls;
         o.sigma = SigmaChoice::Fixed(0.1);
-        assert!(check_options(&o, 1).unwrap_err().0.contains("bciv only"));
+        assert!(check_options(&o, 1)
+            .unwrap_err()
+            .options_text()
+            .contains("bciv only"));
         let mut o = ArxOptions::new(1, 0, 2);
         o.noise_ratios = Some(vec![1.0, 1.0]);
-        assert!(check_options(&o, 1).unwrap_err().0.contains("noise ratios"));
+        assert!(check_options(&o, 1)
+            .unwrap_err()
+            .options_text()
+            .contains("noise ratios"));
     }
 
     #[test]

@@ -10,13 +10,20 @@
 //! the sparse paper), [`systems`] (benchmark generators),
 //! [`link`] (the device link over a serial port),
 //! [`diagnose`] (residual tests, missing effects, the fix),
-//! [`cli`] (the command line).
+//! [`pipeline`] (settings + data -> the identified model every front end gets), [`record`]
+//! (the model file's `fit` record), [`error`] (the typed errors).
+//!
+//! Layers: the core `lpvid` <- this library (no argument parsing, no printing) <- the front
+//! ends: the `lpvid` command line (the `cli` module, compiled only with the `cli` feature,
+//! never imported by the library), the device link's host side, the Python package.
 
 pub mod arx;
 pub mod bpdn;
+#[cfg(feature = "cli")]
 pub mod cli;
 pub mod data;
 pub mod diagnose;
+pub mod error;
 pub mod kernel_sweep;
 pub mod linalg;
 pub mod link;
@@ -25,6 +32,10 @@ pub mod metrics;
 pub mod model;
 pub mod observer;
 pub mod pbsid;
+pub mod pipeline;
+pub mod record;
 pub mod refine;
 pub mod simulate;
 pub mod systems;
+
+pub use error::Error;

@@ -3,7 +3,7 @@
 fn main() {
     let mut stdout = std::io::stdout().lock();
     if let Err(e) = lpvid_host::cli::run(std::env::args_os(), &mut stdout) {
-        eprintln!("error: {e}");
+        eprintln!("{}", e.message());
         std::process::exit(2);
     }
 }

@@ -1,10 +1,12 @@
 //! Simulation of any model file on a data file: free run (the model's own past outputs) or
-//! one-step-ahead prediction (measured past outputs), for `lpv-ss` and `lpv-arx` models.
+//! one-step-ahead prediction (measured past outputs), for `lpv-ss` and `lpv-arx` models,
+//! and its [`score`] (VAF and BFR per output, as the papers define them).
 
 use nalgebra::DMatrix;
 
 use crate::data::{DataError, Dataset};
 use crate::lpvss::Signals;
+use crate::metrics::{bfr_per_output, mean, vaf_per_output};
 use crate::model::{ArxModel, ModelFile, ModelKind};
 
 /// Free run or one-step-ahead predictor.
@@ -26,6 +28,42 @@ pub fn simulate(
     let sig = model.signals.evaluate(ds)?;
     let yhat = simulate_signals(&model.kind, &sig, mode);
     Ok((sig.y, yhat))
+}
+
+/// VAF/BFR per output of a model on a data set.
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct Score {
+    /// The data file.
+    pub file: String,
+    /// "free-run" or "predictor".
+    pub mode: &'static str,
+    /// VAF per output, percent.
+    pub vaf: Vec<f64>,
+    /// BFR per output, percent.
+    pub bfr: Vec<f64>,
+    /// Mean VAF over outputs.
+    pub vaf_mean: f64,
+    /// Mean BFR over outputs.
+    pub bfr_mean: f64,
+}
+
+/// Score `model` on `ds`: VAF and BFR (DESIGN.md section 5) of the free run or the
+/// one-step predictor.
+pub fn score(model: &ModelFile, ds: &Dataset, mode: Mode) -> Result<Score, DataError> {
+    let (y, yhat) = simulate(model, ds, mode)?;
+    let vaf = vaf_per_output(&y, &yhat, 0);
+    let bfr = bfr_per_output(&y, &yhat, 0);
+    Ok(Score {
+        file: ds.source.clone(),
+        mode: match mode {
+            Mode::FreeRun => "free-run",
+            Mode::Predictor => "predictor",
+        },
+        vaf_mean: mean(&vaf),
+        bfr_mean: mean(&bfr),
+        vaf,
+        bfr,
+    })
 }
 
 /// As [`simulate`], on signals already evaluated.

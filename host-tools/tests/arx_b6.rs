@@ -10,10 +10,11 @@
 use lpvid_host::arx::{
     fit, model_file, ArxFit, ArxOptions, Estimator, LambdaChoice, Precision, SigmaChoice,
 };
-use lpvid_host::cli::{self, score};
+use lpvid_host::cli;
 use lpvid_host::data::Dataset;
 use lpvid_host::lpvss::Signals;
 use lpvid_host::model::{ModelFile, ModelKind, SignalMap};
+use lpvid_host::pipeline::score;
 use lpvid_host::simulate::Mode;
 use lpvid_host::systems::{b6, b6_with};
 use nalgebra::DMatrix;

@@ -41,7 +41,7 @@ use serde::Serialize;
 use super::refit::{fit_spec, ArxSpec, Fitted, Noise, Spec};
 use super::residual::{column_roles, ResidualReport, ALPHA};
 use super::stats::{batch_count, batch_log_ratio_t, t_sf};
-use crate::data::Dataset;
+use crate::data::{DataError, Dataset};
 use crate::model::{describe, Factor, FactorFn, ModelFile, ModelKind};
 use crate::pbsid::Order;
 use crate::simulate::{simulate_signals, Mode};
@@ -164,8 +164,8 @@ pub struct Eval {
 
 impl Eval {
     /// Evaluate `model` on `ds`.
-    pub fn new(model: &ModelFile, ds: &Dataset) -> Result<Eval, String> {
-        let sig = model.signals.evaluate(ds).map_err(|e| e.to_string())?;
+    pub fn new(model: &ModelFile, ds: &Dataset) -> Result<Eval, DataError> {
+        let sig = model.signals.evaluate(ds)?;
         let yhat_free = simulate_signals(&model.kind, &sig, Mode::FreeRun);
         let yhat_pred = simulate_signals(&model.kind, &sig, Mode::Predictor);
         let var_y = (0..sig.y.ncols())
@@ -270,7 +270,7 @@ fn score_inner(
                 explained: f64::NEG_INFINITY,
                 t: 0.0,
                 p_value: 1.0,
-                error: Some(e),
+                error: Some(e.to_string()),
                 seconds: 0.0,
             }
         }
@@ -285,7 +285,7 @@ fn score_inner(
                 explained: f64::NEG_INFINITY,
                 t: 0.0,
                 p_value: 1.0,
-                error: Some(e),
+                error: Some(e.to_string()),
                 seconds: 0.0,
             }
         }

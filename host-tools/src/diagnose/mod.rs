@@ -18,18 +18,28 @@ pub mod report;
 pub mod residual;
 pub mod stats;
 
-use std::io::Write;
-use std::path::PathBuf;
-
 use serde::Serialize;
 
-use crate::cli::{score as score_model, CliError, Score};
 use crate::data::{DataError, Dataset};
 use crate::model::ModelFile;
-use crate::simulate::{simulate_signals, Mode};
+use crate::simulate::{score as score_model, simulate_signals, Mode, Score};
 
 use effects::{candidates, evidence, significant, Context, Effect, Eval, Finding, Scored};
 use refit::{fit_spec, Fitted, Spec};
+
+pub use refit::RefitError;
+
+/// Why a diagnosis could not be made at all (a candidate's failed refit is not an error:
+/// it is recorded in the report).
+#[derive(Debug, thiserror::Error)]
+pub enum DiagnoseError {
+    /// The validation or training data lack a column the model reads.
+    #[error(transparent)]
+    Data(#[from] DataError),
+    /// The model's settings cannot be read back, or a step every candidate needs failed.
+    #[error(transparent)]
+    Refit(#[from] RefitError),
+}
 use residual::{analyse, ResidualReport, ALPHA};
 
 /// What to do besides the diagnosis.
@@ -253,12 +263,11 @@ pub fn diagnose(
     train: &Dataset,
     val: &Dataset,
     opts: &Options,
-) -> Result<Outcome, String> {
+) -> Result<Outcome, DiagnoseError> {
     let mut notes = Vec::new();
     let mut spec = Spec::from_model(model, &mut notes)?;
-    let err = |e: CliError| e.to_string();
-    let before = score_model(model, val, Mode::FreeRun).map_err(err)?;
-    let before_one_step = score_model(model, val, Mode::Predictor).map_err(err)?;
+    let before = score_model(model, val, Mode::FreeRun)?;
+    let before_one_step = score_model(model, val, Mode::Predictor)?;
     let before_eval = Eval::new(model, val)?;
     let free0 = analyse(
         "free-run",
@@ -326,11 +335,7 @@ pub fn diagnose(
                 ));
             }
         }
-        let train_sig = base
-            .model
-            .signals
-            .evaluate(train)
-            .map_err(|e| e.to_string())?;
+        let train_sig = base.model.signals.evaluate(train)?;
         let train_res =
             &train_sig.y - simulate_signals(&base.model.kind, &train_sig, Mode::FreeRun);
         let ctx = Context {
@@ -573,8 +578,8 @@ pub fn diagnose(
         (None, None, None)
     } else {
         (
-            Some(score_model(&current, val, Mode::FreeRun).map_err(err)?),
-            Some(score_model(&current, val, Mode::Predictor).map_err(err)?),
+            Some(score_model(&current, val, Mode::FreeRun)?),
+            Some(score_model(&current, val, Mode::Predictor)?),
             Some(Eval::new(&current, val)?),
         )
     };
@@ -610,96 +615,4 @@ pub fn diagnose(
         before_eval,
         after_eval,
     })
-}
-
-/// `lpvid diagnose` arguments.
-#[derive(Debug, clap::Args)]
-pub struct DiagnoseArgs {
-    /// Model file (JSON) to diagnose.
-    #[arg(long)]
-    pub model: PathBuf,
-    /// Training data (CSV) the model was (and candidates are) identified on.
-    #[arg(long)]
-    pub train: PathBuf,
-    /// Validation data (CSV): the held-out data every candidate is scored on.
-    #[arg(long)]
-    pub val: PathBuf,
-    /// Add the best effect to the model and refit it with the model's own settings.
-    #[arg(long)]
-    pub fix: bool,
-    /// With --fix: repeat while an effect explains the residual above the noise threshold.
-    #[arg(long, default_value_t = 1, requires = "fix")]
-    pub max_steps: usize,
-    /// With --fix: where to write the fixed model (JSON).
-    #[arg(long, requires = "fix")]
-    pub out: Option<PathBuf>,
-    /// Write the JSON report here.
-    #[arg(long)]
-    pub json: Option<PathBuf>,
-    /// Write SVG pictures here (fit before/after, residual correlations, spectrum, singular
-    /// values).
-    #[arg(long)]
-    pub plots: Option<PathBuf>,
-    /// Worker threads for the candidate refits (0: all cores).
-    #[arg(long, default_value_t = 0)]
-    pub threads: usize,
-}
-
-/// Run `lpvid diagnose`.
-pub fn run_cli(a: &DiagnoseArgs, out: &mut dyn Write) -> Result<(), CliError> {
-    let model = ModelFile::read(&a.model)?;
-    let train = Dataset::read_csv(&a.train)?;
-    let val = Dataset::read_csv(&a.val)?;
-    let opts = Options {
-        fix: a.fix,
-        max_steps: a.max_steps,
-        threads: a.threads,
-    };
-    let mut res = diagnose(&model, &train, &val, &opts)
-        .map_err(|e| CliError::Other(format!("diagnose: {e}")))?;
-    res.report.model = a.model.display().to_string();
-    if !res.report.applied.is_empty() {
-        if let (Ok(bytes), serde_json::Value::Object(m)) =
-            (std::fs::read(&a.train), &mut res.model.fit)
-        {
-            m.insert(
-                "train".into(),
-                serde_json::json!({
-                    "file": a.train.display().to_string(),
-                    "rows": train.len(),
-                    "fnv1a64": crate::cli::fingerprint(&bytes),
-                }),
-            );
-        }
-    }
-    if let Some(p) = &a.out {
-        if res.report.applied.is_empty() {
-            // nothing to add: the model is written unchanged so that scripts find the file
-            model.write(p)?;
-        } else {
-            res.model.write(p)?;
-        }
-        res.report.out = Some(p.display().to_string());
-    }
-    if let Some(p) = &a.json {
-        let text = serde_json::to_string_pretty(&res.report)
-            .map_err(|e| CliError::Other(format!("cannot encode the report: {e}")))?;
-        crate::data::write_atomic(p, text.as_bytes())?;
-    }
-    let mut written = Vec::new();
-    if let Some(dir) = &a.plots {
-        std::fs::create_dir_all(dir).map_err(|e| {
-            DataError::new(
-                dir.display().to_string(),
-                None,
-                None,
-                format!("cannot create: {e}"),
-            )
-        })?;
-        written = plots::write_all(dir, &res)?;
-    }
-    let text = report::summary(&res.report, &written);
-    out.write_all(text.as_bytes())
-        .map_err(|e| CliError::Other(format!("cannot write output: {e}")))?;
-    Ok(())
 }

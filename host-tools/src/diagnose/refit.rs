@@ -26,10 +26,48 @@ use serde_json::{json, Map, Value};
 
 use super::stats::{moments, solve_moments};
 use crate::arx::{self, ArxOptions, Estimator};
-use crate::data::Dataset;
+use crate::data::{DataError, Dataset};
 use crate::lpvss::{scheduled, LpvSs, Signals};
 use crate::model::{describe, Factor, ModelFile, ModelKind, SignalMap};
 use crate::pbsid::{self, Order, PbsidOptions, Reg};
+
+/// Why a refit failed (recorded per candidate in the report; the diagnosis goes on).
+#[derive(Debug, thiserror::Error)]
+pub enum RefitError {
+    /// The training data lack a column the model reads.
+    #[error(transparent)]
+    Data(#[from] DataError),
+    /// The model's `fit` record cannot be read back as settings.
+    #[error("{0}")]
+    Record(String),
+    /// LPV-PBSID_opt failed on the refit.
+    #[error(transparent)]
+    Fit(#[from] pbsid::FitError),
+    /// LPV-ARX failed on the refit.
+    #[error(transparent)]
+    Arx(#[from] arx::ArxError),
+    /// A core statistic failed.
+    #[error("{0}")]
+    Core(lpvid::Error),
+    /// The model or data are outside what this refit handles.
+    #[error("{0}")]
+    Unsupported(String),
+    /// A least-squares or eigen step failed, or a simulation diverged.
+    #[error("{0}")]
+    Numerical(String),
+}
+
+impl From<lpvid::Error> for RefitError {
+    fn from(e: lpvid::Error) -> Self {
+        RefitError::Core(e)
+    }
+}
+
+impl From<String> for RefitError {
+    fn from(e: String) -> Self {
+        RefitError::Numerical(e)
+    }
+}
 
 /// How to refit a model: its signal map, the PBSID settings and the extra structure.
 #[derive(Debug, Clone)]
@@ -110,14 +148,14 @@ fn get_usize(fit: &Value, key: &str) -> Option<usize> {
 impl Spec {
     /// The refit settings of a model file: its signals and the settings of its `fit`
     /// record. Missing settings get the `lpvid pbsid` defaults and a note saying so.
-    pub fn from_model(model: &ModelFile, notes: &mut Vec<String>) -> Result<Spec, String> {
+    pub fn from_model(model: &ModelFile, notes: &mut Vec<String>) -> Result<Spec, RefitError> {
         let fit = &model.fit;
         match &model.kind {
             ModelKind::Arx(m) => {
                 let ng = get_usize(fit, "ng").unwrap_or(1);
                 let sched_signals = match fit.get("scheduling_signals") {
                     Some(v) => serde_json::from_value::<Vec<Vec<Factor>>>(v.clone())
-                        .map_err(|e| format!("fit.scheduling_signals: {e}"))?,
+                        .map_err(|e| RefitError::Record(format!("fit.scheduling_signals: {e}")))?,
                     None => {
                         let plain: Vec<Vec<Factor>> = model
                             .signals
@@ -258,16 +296,18 @@ fn select_columns(m: &DMatrix<f64>, cols: &[usize]) -> DMatrix<f64> {
 }
 
 /// Refit `spec` on the training data; `base_fit` is the `fit` record to extend.
-pub fn fit_spec(spec: &Spec, train: &Dataset, base_fit: &Value) -> Result<Fitted, String> {
+pub fn fit_spec(spec: &Spec, train: &Dataset, base_fit: &Value) -> Result<Fitted, RefitError> {
     if let Some(a) = &spec.arx {
         return fit_arx(spec, a, train, base_fit);
     }
-    let sig = spec.signals.evaluate(train).map_err(|e| e.to_string())?;
+    let sig = spec.signals.evaluate(train)?;
     let r = sig.u.ncols();
     let (const_idx, var_idx): (Vec<usize>, Vec<usize>) =
         (0..r).partition(|&j| constant_column(&sig.u, j));
     if var_idx.is_empty() {
-        return Err("the model has no input that varies on the training data".into());
+        return Err(RefitError::Unsupported(
+            "the model has no input that varies on the training data".into(),
+        ));
     }
     let centre = !const_idx.is_empty();
     let mut sub = Signals {
@@ -283,7 +323,7 @@ pub fn fit_spec(spec: &Spec, train: &Dataset, base_fit: &Value) -> Result<Fitted
             }
         }
     }
-    let mut f = pbsid::fit(&sub, &spec.opts).map_err(|e| e.to_string())?;
+    let mut f = pbsid::fit(&sub, &spec.opts)?;
     let mut ss = f.model.clone();
     let mut output_eq = "constant";
     if spec.scheduled_output && sub.p.ncols() > 0 {
@@ -391,14 +431,14 @@ pub fn scheduled_states(
     sc: &pbsid::Scaling,
     opts: &PbsidOptions,
     plain_order: usize,
-) -> Result<(DMatrix<f64>, Vec<f64>, usize), String> {
+) -> Result<(DMatrix<f64>, Vec<f64>, usize), RefitError> {
     use lpvid::window::write_pbsid_regressor;
     use lpvid::{PbsidDims, Samples, Slab};
     let (big_n, r, l, s) = (sig.len(), sig.u.ncols(), sig.y.ncols(), sig.p.ncols());
     let m = s + 1;
     let past = opts.past;
-    let dims = PbsidDims::new(r, l, s, past).map_err(|e| e.to_string())?;
-    let q = dims.q().map_err(|e| e.to_string())?;
+    let dims = PbsidDims::new(r, l, s, past)?;
+    let q = dims.q()?;
     let w = r + l + m;
     let mut rows = vec![0.0; big_n * w];
     for k in 0..big_n {
@@ -414,14 +454,14 @@ pub fn scheduled_states(
             *v = (sig.p[(k, j)] - sc.p_center[j]) / sc.p_scale[j];
         }
     }
-    let slab = Slab::new(&rows, r, l, m).map_err(|e| e.to_string())?;
+    let slab = Slab::new(&rows, r, l, m)?;
     let windows = big_n - past;
     let r_ft = if opts.feedthrough { r } else { 0 };
     let nreg = m * (q + r_ft);
     if nreg > 4000 {
-        return Err(format!(
+        return Err(RefitError::Unsupported(format!(
             "the scheduled-output regression has {nreg} regressors: too many for this past window"
-        ));
+        )));
     }
     let mut z = vec![0.0; q];
     let mut zu = vec![0.0; q + r_ft];
@@ -472,7 +512,7 @@ fn ridge_gcv(
     nreg: usize,
     ntgt: usize,
     rows: usize,
-) -> Result<DMatrix<f64>, String> {
+) -> Result<DMatrix<f64>, RefitError> {
     let sff = s_all.view((0, 0), (nreg, nreg)).into_owned();
     let sfy = s_all.view((0, nreg), (nreg, ntgt)).into_owned();
     let (vals, vecs) = crate::linalg::sym_eig(&sff)?;
@@ -537,7 +577,7 @@ pub fn realize_scheduled(
     states: &DMatrix<f64>,
     past: usize,
     feedthrough: bool,
-) -> Result<LpvSs, String> {
+) -> Result<LpvSs, RefitError> {
     let (r, l, m) = (sig.u.ncols(), sig.y.ncols(), sig.p.ncols() + 1);
     let n = states.nrows();
     let nb = states.ncols() - 1;
@@ -600,7 +640,7 @@ fn add_constant_channels(
     sig: &Signals,
     var_idx: &[usize],
     const_idx: &[usize],
-) -> Result<LpvSs, String> {
+) -> Result<LpvSs, RefitError> {
     let (n, l, m) = (ss.n(), ss.l(), ss.m());
     let big_n = sig.len();
     let r = var_idx.len() + const_idx.len();
@@ -654,7 +694,9 @@ fn add_constant_channels(
         buf[np] = sig.y[(k, j)] - y0[(k, j)];
     })?;
     if theta.iter().any(|v| !v.is_finite()) {
-        return Err("constant-channel least squares failed (non-finite coefficients)".into());
+        return Err(RefitError::Numerical(
+            "constant-channel least squares failed (non-finite coefficients)".into(),
+        ));
     }
     let mut b: Vec<DMatrix<f64>> = vec![DMatrix::zeros(n, r); m];
     let mut d: Vec<DMatrix<f64>> = vec![DMatrix::zeros(l, r); md];
@@ -697,7 +739,11 @@ pub const MAX_AR_ORDER: usize = 20;
 
 /// Append an AR noise model per output of the training one-step residual (order by BIC, 0
 /// allowed) as innovation-driven states. Returns the model and the orders.
-fn add_noise_model(ss: &LpvSs, sig: &Signals, kind: Noise) -> Result<(LpvSs, Vec<usize>), String> {
+fn add_noise_model(
+    ss: &LpvSs,
+    sig: &Signals,
+    kind: Noise,
+) -> Result<(LpvSs, Vec<usize>), RefitError> {
     let (n, l, m) = (ss.n(), ss.l(), ss.m());
     let big_n = sig.len();
     let eps = match kind {
@@ -705,7 +751,9 @@ fn add_noise_model(ss: &LpvSs, sig: &Signals, kind: Noise) -> Result<(LpvSs, Vec
         _ => &sig.y - ss.predict(sig),
     };
     if eps.iter().any(|v| !v.is_finite()) {
-        return Err("the model diverges on the training data".into());
+        return Err(RefitError::Numerical(
+            "the model diverges on the training data".into(),
+        ));
     }
     // output error: the AR model of v = y - G u replaces K
     let kk: Vec<DMatrix<f64>> = match kind {
@@ -800,14 +848,21 @@ fn add_noise_model(ss: &LpvSs, sig: &Signals, kind: Noise) -> Result<(LpvSs, Vec
 
 /// The LPV-ARX path: BC-IV(-LASSO) with sigma_eta and lambda chosen on the end of the
 /// training record (calibration data), as `lpvid arx --estimator bciv`.
-fn fit_arx(spec: &Spec, a: &ArxSpec, train: &Dataset, base_fit: &Value) -> Result<Fitted, String> {
+fn fit_arx(
+    spec: &Spec,
+    a: &ArxSpec,
+    train: &Dataset,
+    base_fit: &Value,
+) -> Result<Fitted, RefitError> {
     if spec.signals.outputs.len() != 1 {
-        return Err("LPV-ARX models have exactly one output".into());
+        return Err(RefitError::Unsupported(
+            "LPV-ARX models have exactly one output".into(),
+        ));
     }
-    let eval = |list: &[Vec<Factor>], role: &str| -> Result<DMatrix<f64>, String> {
+    let eval = |list: &[Vec<Factor>], role: &str| -> Result<DMatrix<f64>, RefitError> {
         let mut m = DMatrix::zeros(train.len(), list.len());
         for (j, prod) in list.iter().enumerate() {
-            let v = crate::model::eval_product(prod, train, role).map_err(|e| e.to_string())?;
+            let v = crate::model::eval_product(prod, train, role)?;
             m.set_column(j, &DVector::from_vec(v));
         }
         Ok(m)
@@ -820,7 +875,9 @@ fn fit_arx(spec: &Spec, a: &ArxSpec, train: &Dataset, base_fit: &Value) -> Resul
     let big_n = sig.len();
     let nc = ((big_n as f64) * a.calib_fraction).round() as usize;
     if nc < 20 || big_n - nc < 20 {
-        return Err("too few samples to split off calibration data for BC-IV".into());
+        return Err(RefitError::Unsupported(
+            "too few samples to split off calibration data for BC-IV".into(),
+        ));
     }
     let tr = sig.slice(0, big_n - nc);
     let cal = sig.slice(big_n - nc, nc);
@@ -836,8 +893,8 @@ fn fit_arx(spec: &Spec, a: &ArxSpec, train: &Dataset, base_fit: &Value) -> Resul
             opts.noise_ratios = Some(ratios.clone());
         }
     }
-    let af = arx::fit(&tr, Some(&cal), &opts).map_err(|e| e.to_string())?;
-    let scheduling = arx::basis_products(&a.sched_signals, a.ng).map_err(|e| e.to_string())?;
+    let af = arx::fit(&tr, Some(&cal), &opts)?;
+    let scheduling = arx::basis_products(&a.sched_signals, a.ng)?;
     let signals = SignalMap {
         inputs: spec.signals.inputs.clone(),
         scheduling,

@@ -1,0 +1,494 @@
+//! `lpvid device`: talk to a device over a serial port (info, stream a file, pull the
+//! statistics and identify from them through [`crate::pipeline::identify_from_stats`], solve
+//! on the device, push a model, reset).
+
+use std::io::{self, IsTerminal, Write};
+use std::path::PathBuf;
+use std::time::{Duration, Instant};
+
+use clap::{Args, Subcommand};
+use lpvid::protocol::{Info, SolveRequest};
+use lpvid::{packed_len, stat_vector_len, PbsidDims, StatsLayout};
+use serde_json::{json, Value};
+
+use super::CliError;
+use crate::data::Dataset;
+use crate::link::{
+    compare_with_file, extended_gram, open_port, sample_rows, Link, LinkError, LinkOptions,
+};
+use crate::model::{ModelFile, ModelKind, SignalMap};
+use crate::pbsid::{Order, PbsidOptions, Reg};
+use crate::pipeline;
+
+/// `lpvid device`: talk to a device (firmware or emulator) over a serial port.
+#[derive(Debug, Args)]
+pub struct DeviceArgs {
+    /// Serial port (e.g. /dev/ttyACM0, or the /dev/pts/N QEMU prints).
+    #[arg(long)]
+    port: PathBuf,
+    /// Reply timeout in milliseconds before a retransmission.
+    #[arg(long, default_value_t = 500)]
+    timeout_ms: u64,
+    /// Retransmissions per request before giving up.
+    #[arg(long, default_value_t = 25)]
+    retries: u32,
+    /// Print a JSON summary instead of the human one.
+    #[arg(long)]
+    json: bool,
+    #[command(subcommand)]
+    action: DeviceAction,
+}
+
+#[derive(Debug, Subcommand)]
+enum DeviceAction {
+    /// Handshake: protocol version, float type, capacities, and the device's status.
+    Info,
+    /// Configure the device for a data file's channels and stream the file's samples.
+    Stream(StreamArgs),
+    /// Pull the statistics and identify a model from them (the same code as a file fit).
+    Pull(PullArgs),
+    /// Solve problem (13) (Lasso or least squares) on the device and pull the coefficients.
+    Solve(SolveArgs),
+    /// Push an lpv-ss model for the device's one-step-ahead predictor.
+    Push(PushArgs),
+    /// Clear the device's statistics and sample index (configuration and model stay).
+    Reset,
+}
+
+#[derive(Debug, Args)]
+struct StreamArgs {
+    /// Data file (CSV: u1.., y1.., p1..).
+    file: PathBuf,
+    /// Past window p.
+    #[arg(long, default_value_t = 3)]
+    past: usize,
+    /// Accumulate the plain statistics of problem (13) only (default: extended, from which
+    /// the host finishes the whole fit).
+    #[arg(long)]
+    plain: bool,
+    /// Continue the device's current stream instead of configuring afresh (samples already
+    /// applied are acknowledged, not counted again).
+    #[arg(long)]
+    resume: bool,
+    /// Largest number of samples per frame (default: as many as fit).
+    #[arg(long, default_value_t = 0)]
+    batch: usize,
+}
+
+#[derive(Debug, Args)]
+struct PullArgs {
+    /// Write the model identified from the statistics here (JSON).
+    #[arg(long)]
+    out: Option<PathBuf>,
+    /// Write the raw statistics here (JSON: dimensions, windows, packed Gram).
+    #[arg(long)]
+    stats: Option<PathBuf>,
+    /// Check against this data file: the host accumulates the same statistics and fits the
+    /// file; fails if they differ by more than the tolerances.
+    #[arg(long)]
+    compare: Option<PathBuf>,
+    /// Tolerance on the relative statistics difference for --compare.
+    #[arg(long, default_value_t = 1e-4)]
+    stats_tol: f64,
+    /// Tolerance on the relative model output difference for --compare.
+    #[arg(long, default_value_t = 1e-2)]
+    model_tol: f64,
+    /// Model order, or `auto`.
+    #[arg(long, default_value = "auto")]
+    order: Order,
+    /// Regularisation: none or tikhonov-gcv.
+    #[arg(long, default_value = "tikhonov-gcv")]
+    reg: Reg,
+    /// Assume D = 0.
+    #[arg(long)]
+    no_feedthrough: bool,
+}
+
+#[derive(Debug, Args)]
+struct SolveArgs {
+    /// lambda as a fraction of lambda_max (0: least squares).
+    #[arg(long, default_value_t = 0.01)]
+    lambda_ratio: f32,
+    /// l2,1 (group) penalty instead of l1.
+    #[arg(long)]
+    group: bool,
+    /// Penalise raw instead of standardised coefficients.
+    #[arg(long)]
+    raw: bool,
+}
+
+#[derive(Debug, Args)]
+struct PushArgs {
+    /// Model file (lpv-ss JSON).
+    model: PathBuf,
+}
+
+fn link_err(e: LinkError) -> CliError {
+    CliError::Lib(e.into())
+}
+
+fn w(out: &mut dyn Write, s: String) -> Result<(), CliError> {
+    writeln!(out, "{s}")?;
+    Ok(())
+}
+
+/// Run `lpvid device ...`.
+pub(super) fn run(a: &DeviceArgs, out: &mut dyn Write) -> Result<(), CliError> {
+    let port = open_port(&a.port).map_err(link_err)?;
+    let opts = LinkOptions {
+        timeout: Duration::from_millis(a.timeout_ms),
+        retries: a.retries,
+        batch: match &a.action {
+            DeviceAction::Stream(s) => s.batch,
+            _ => 0,
+        },
+        ..LinkOptions::default()
+    };
+    let mut link = Link::new(port, opts);
+    let info = link.hello().map_err(link_err)?;
+    let result = match &a.action {
+        DeviceAction::Info => {
+            let st = link.status().map_err(link_err)?;
+            let mut v = json!({"command": "device info", "info": info_json(&info), "status": st});
+            if st.model_loaded {
+                let (count, sse, last) = link.prediction().map_err(link_err)?;
+                v["prediction"] = json!({"count": count, "sse": sse, "last": last});
+            }
+            Ok(v)
+        }
+        DeviceAction::Stream(s) => stream_cmd(&mut link, s, a.json),
+        DeviceAction::Pull(p) => pull_cmd(&mut link, p, &info),
+        DeviceAction::Solve(s) => {
+            let req = SolveRequest {
+                lambda_ratio: s.lambda_ratio,
+                group: s.group,
+                standardise: !s.raw,
+            };
+            let (sum, theta) = link.solve(req).map_err(link_err)?;
+            Ok(json!({"command": "device solve", "summary": sum, "theta": theta}))
+        }
+        DeviceAction::Push(p) => {
+            let mf = ModelFile::read(&p.model)?;
+            let ModelKind::Ss(m) = &mf.kind else {
+                return Err(CliError::Invalid(format!(
+                    "{}: the device predictor runs lpv-ss models only",
+                    p.model.display()
+                )));
+            };
+            let n = link.push_model(m).map_err(link_err)?;
+            Ok(
+                json!({"command": "device push", "model": p.model.display().to_string(), "values": n, "order": m.n()}),
+            )
+        }
+        DeviceAction::Reset => {
+            link.reset().map_err(link_err)?;
+            Ok(json!({"command": "device reset"}))
+        }
+    }?;
+    let ls = link.stats();
+    let mut result = result;
+    result["link"] = serde_json::to_value(ls).unwrap_or(Value::Null);
+    if a.json {
+        w(
+            out,
+            serde_json::to_string_pretty(&result).unwrap_or_default(),
+        )?;
+    } else {
+        print_human(&result, out)?;
+    }
+    Ok(())
+}
+
+fn info_json(i: &Info) -> Value {
+    json!({
+        "protocol": i.version,
+        "float": if i.float_bytes == 4 { "f32" } else { "f64" },
+        "max_frame_bytes": i.max_frame,
+        "window_values": i.window_cap,
+        "gram_values": i.gram_cap,
+        "vector_values": i.vector_cap,
+        "solver_values": i.solver_cap,
+        "model_values": i.model_cap,
+        "max_channels": i.max_channels,
+        "capabilities": i.capabilities,
+    })
+}
+
+fn stream_cmd(
+    link: &mut Link<serialport::TTYPort>,
+    s: &StreamArgs,
+    json_out: bool,
+) -> Result<Value, CliError> {
+    let ds = Dataset::read_csv(&s.file)?;
+    let map = SignalMap::default_for(&ds)?;
+    let sig = map.evaluate(&ds)?;
+    let dims = PbsidDims::new(sig.u.ncols(), sig.y.ncols(), sig.p.ncols(), s.past)
+        .map_err(|e| CliError::Invalid(format!("{}: {e}", ds.source)))?;
+    let layout = if s.plain {
+        StatsLayout::Plain
+    } else {
+        StatsLayout::Extended
+    };
+    let first = if s.resume {
+        let st = link.status().map_err(link_err)?;
+        if !st.configured
+            || (st.r as usize, st.l as usize, st.s as usize, st.p as usize)
+                != (dims.r, dims.l, dims.s, dims.p)
+        {
+            return Err(CliError::Invalid(
+                "--resume: the device is not configured for this file's dimensions".into(),
+            ));
+        }
+        st.next_sample
+    } else {
+        link.configure(&dims, layout).map_err(link_err)?;
+        0
+    };
+    let rows = sample_rows(&sig);
+    let per = dims.r + dims.l + dims.s;
+    let n = sig.len();
+    let skip = (first as usize).min(n);
+    let bar = if !json_out && io::stderr().is_terminal() {
+        let b = indicatif::ProgressBar::new((n - skip) as u64);
+        b.set_style(
+            indicatif::ProgressStyle::with_template(
+                "{bar:40} {pos}/{len} samples {per_sec} eta {eta}",
+            )
+            .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar()),
+        );
+        b
+    } else {
+        indicatif::ProgressBar::hidden()
+    };
+    let t0 = Instant::now();
+    let st = link
+        .stream(&rows[skip * per..], per, first, |d| {
+            bar.set_position(d as u64)
+        })
+        .map_err(link_err)?;
+    bar.finish_and_clear();
+    let secs = t0.elapsed().as_secs_f64();
+    Ok(json!({
+        "command": "device stream",
+        "file": ds.source,
+        "samples": n - skip,
+        "first": first,
+        "seconds": secs,
+        "samples_per_second": (n - skip) as f64 / secs.max(1e-9),
+        "status": st,
+    }))
+}
+
+fn pull_cmd(
+    link: &mut Link<serialport::TTYPort>,
+    p: &PullArgs,
+    info: &Info,
+) -> Result<Value, CliError> {
+    let (st, vals) = link.pull_stats().map_err(link_err)?;
+    let dims = PbsidDims::new(st.r as usize, st.l as usize, st.s as usize, st.p as usize)
+        .map_err(|e| CliError::Invalid(format!("device dimensions: {e}")))?;
+    let ext_len = stat_vector_len(&dims, StatsLayout::Extended)
+        .map(packed_len)
+        .ok();
+    let layout = if ext_len == Some(vals.len()) {
+        StatsLayout::Extended
+    } else {
+        StatsLayout::Plain
+    };
+    let mut opts = PbsidOptions::new(dims.p);
+    opts.order = p.order;
+    opts.reg = p.reg;
+    opts.feedthrough = !p.no_feedthrough;
+    let mut res = json!({
+        "command": "device pull",
+        "status": st,
+        "layout": if layout == StatsLayout::Extended { "extended" } else { "plain" },
+        "values": vals.len(),
+    });
+    if let Some(path) = &p.stats {
+        let v = json!({"r": dims.r, "l": dims.l, "s": dims.s, "p": dims.p,
+            "layout": res["layout"], "windows": st.windows, "float": if info.float_bytes == 4 {"f32"} else {"f64"},
+            "gram_packed_upper_row_major": vals});
+        crate::data::write_atomic(
+            path,
+            serde_json::to_string(&v).unwrap_or_default().as_bytes(),
+        )?;
+        res["stats_file"] = json!(path.display().to_string());
+    }
+    if let Some(path) = &p.out {
+        if layout != StatsLayout::Extended {
+            return Err(CliError::Invalid(
+                "a model needs the extended statistics: stream without --plain".into(),
+            ));
+        }
+        let gram = extended_gram(&vals, st.windows, &dims).map_err(crate::Error::from)?;
+        let (mf, fit) = pipeline::identify_from_stats(
+            &gram,
+            &dims,
+            &opts,
+            json!({
+                "what": "device statistics (lpvid device pull)",
+                "float": if info.float_bytes == 4 {"f32"} else {"f64"},
+            }),
+        )?;
+        mf.write(path)?;
+        res["model"] = json!({"out": path.display().to_string(), "order": fit.order,
+            "singular_values": fit.singular_values});
+    }
+    if let Some(path) = &p.compare {
+        let ds = Dataset::read_csv(path)?;
+        let sig = SignalMap::default_for(&ds)?.evaluate(&ds)?;
+        let with_model = if layout == StatsLayout::Extended {
+            Some(&opts)
+        } else {
+            None
+        };
+        let cmp = compare_with_file(
+            &vals,
+            st.windows,
+            info.float_bytes,
+            &sig,
+            &dims,
+            layout,
+            with_model,
+        )
+        .map_err(crate::Error::from)?;
+        res["compare"] = serde_json::to_value(&cmp).unwrap_or(Value::Null);
+        let mut bad = Vec::new();
+        if cmp.windows.0 != cmp.windows.1 {
+            bad.push(format!(
+                "windows {} on the device, {} on the host",
+                cmp.windows.0, cmp.windows.1
+            ));
+        }
+        if cmp.stats_vs_f64.is_nan() || cmp.stats_vs_f64 > p.stats_tol {
+            bad.push(format!(
+                "statistics differ by {:.3e} > {:.1e}",
+                cmp.stats_vs_f64, p.stats_tol
+            ));
+        }
+        if let Some(d) = cmp.model_vs_file_fit {
+            if d.is_nan() || d > p.model_tol {
+                bad.push(format!(
+                    "model outputs differ by {d:.3e} > {:.1e}",
+                    p.model_tol
+                ));
+            }
+        }
+        if !bad.is_empty() {
+            return Err(CliError::Invalid(format!(
+                "device statistics do not match {}: {}",
+                path.display(),
+                bad.join("; ")
+            )));
+        }
+    }
+    Ok(res)
+}
+
+fn print_human(v: &Value, out: &mut dyn Write) -> Result<(), CliError> {
+    let cmd = v["command"].as_str().unwrap_or("device");
+    match cmd {
+        "device info" => {
+            let i = &v["info"];
+            w(out, format!(
+                "device: protocol v{}, {} statistics, frames up to {} bytes, capabilities {:#x}",
+                i["protocol"], i["float"].as_str().unwrap_or("?"), i["max_frame_bytes"], i["capabilities"].as_u64().unwrap_or(0)
+            ))?;
+            w(out, format!(
+                "  capacities (values): window {}, Gram {}, vector {}, solver {}, model {}; up to {} channels",
+                i["window_values"], i["gram_values"], i["vector_values"], i["solver_values"], i["model_values"], i["max_channels"]
+            ))?;
+            let s = &v["status"];
+            w(out, format!(
+                "  status: configured {} (r={} l={} s={} p={}), next sample {}, {} windows, {} duplicate samples, frames ok {} rejected {}, model loaded {}",
+                s["configured"], s["r"], s["l"], s["s"], s["p"], s["next_sample"], s["windows"],
+                s["duplicate_samples"], s["frames_ok"], s["frames_rejected"], s["model_loaded"]
+            ))?;
+            if let Some(p) = v.get("prediction") {
+                w(out, format!(
+                    "  one-step predictor: {} samples, sum of squared errors {}, last prediction {}",
+                    p["count"], p["sse"], p["last"]
+                ))?;
+            }
+        }
+        "device stream" => {
+            let s = &v["status"];
+            w(out, format!(
+                "streamed {} samples of {} ({:.0} samples/s): device at sample {}, {} windows accumulated",
+                v["samples"], v["file"].as_str().unwrap_or("?"), v["samples_per_second"].as_f64().unwrap_or(0.0),
+                s["next_sample"], s["windows"]
+            ))?;
+        }
+        "device pull" => {
+            let s = &v["status"];
+            w(
+                out,
+                format!(
+                    "pulled {} {} statistic values ({} windows, r={} l={} s={} p={})",
+                    v["values"],
+                    v["layout"].as_str().unwrap_or("?"),
+                    s["windows"],
+                    s["r"],
+                    s["l"],
+                    s["s"],
+                    s["p"]
+                ),
+            )?;
+            if let Some(m) = v.get("model") {
+                w(
+                    out,
+                    format!(
+                        "  model of order {} written to {}",
+                        m["order"],
+                        m["out"].as_str().unwrap_or("?")
+                    ),
+                )?;
+            }
+            if let Some(c) = v.get("compare") {
+                w(out, format!(
+                    "  vs host: statistics differ by {:.3e} (relative, f64 host), {:.3e} (absolute, same float type); model outputs by {}",
+                    c["stats_vs_f64"].as_f64().unwrap_or(f64::NAN),
+                    c["stats_vs_same_type"].as_f64().unwrap_or(f64::NAN),
+                    c["model_vs_file_fit"].as_f64().map(|d| format!("{d:.3e} vs the file fit")).unwrap_or("-".into())
+                ))?;
+            }
+        }
+        "device solve" => {
+            let s = &v["summary"];
+            w(out, format!(
+                "solved on the device: {} columns x {} outputs, lambda {:.4e} (max {:.4e}), {} active, {} sweeps, converged {}, kkt {:.2e}",
+                s["columns"], s["outputs"], s["lambda"].as_f64().unwrap_or(0.0), s["lambda_max"].as_f64().unwrap_or(0.0),
+                s["active"], s["iterations"], s["converged"], s["kkt"].as_f64().unwrap_or(0.0)
+            ))?;
+            if let Some(t) = v["theta"].as_array() {
+                let vals: Vec<String> = t
+                    .iter()
+                    .map(|x| format!("{:.4}", x.as_f64().unwrap_or(0.0)))
+                    .collect();
+                w(out, format!("  coefficients: {}", vals.join(" ")))?;
+            }
+        }
+        "device push" => w(
+            out,
+            format!(
+                "pushed {} (order {}, {} values): the device predicts from the next sample on",
+                v["model"].as_str().unwrap_or("?"),
+                v["order"],
+                v["values"]
+            ),
+        )?,
+        _ => w(
+            out,
+            "device reset: statistics and sample index cleared".to_string(),
+        )?,
+    }
+    let l = &v["link"];
+    w(
+        out,
+        format!(
+            "  link: {} requests, {} retries ({} timeouts, {} bad frames, {} NAKs)",
+            l["requests"], l["retries"], l["timeouts"], l["bad_frames"], l["naks"]
+        ),
+    )
+}

@@ -1,0 +1,121 @@
+//! The `lpvid` command line (DESIGN.md section 5): one file per command, each a thin
+//! wrapper that parses its arguments (clap), calls the library ([`crate::pipeline`] and the
+//! algorithm modules) and prints a human summary or, with `--json`, a machine-readable one.
+//! The library never imports this module; it is compiled only with the `cli` feature.
+
+mod arx;
+mod demo;
+mod device;
+mod diagnose;
+mod pbsid;
+mod stability;
+mod validate;
+
+use std::ffi::OsString;
+use std::io::Write;
+
+use clap::{Parser, Subcommand};
+
+use crate::data::DataError;
+
+/// lpvid: identify Linear Parameter-Varying systems from data.
+#[derive(Debug, Parser)]
+#[command(name = "lpvid", version, about, long_about = None)]
+pub struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Debug, Subcommand)]
+enum Command {
+    /// Run the main job on the bundled fixture: identify, validate, print singular values and fit.
+    Demo(demo::DemoArgs),
+    /// Identify an LPV state-space model with LPV-PBSID_opt.
+    Pbsid(pbsid::PbsidArgs),
+    /// Identify an LPV-ARX model: LS, refined IV, bias-corrected IV, BC-IV-LASSO.
+    Arx(arx::ArxArgs),
+    /// Score a model on a data file: VAF and BFR per output.
+    Validate(validate::ValidateArgs),
+    /// Simulate a model on a data file and write its outputs as CSV.
+    Simulate(validate::SimulateArgs),
+    /// Frozen-scheduling stability region of a model's one-step predictor A(mu) - K(mu) C.
+    Stability(stability::StabilityArgs),
+    /// Talk to a device over a serial port: info, stream a file, pull statistics, solve, push a model.
+    Device(device::DeviceArgs),
+    /// Test a model's residual on validation data, name the missing effect, add it and refit.
+    Diagnose(diagnose::DiagnoseArgs),
+}
+
+/// Any failure of a command, with the message the user sees.
+#[derive(Debug, thiserror::Error)]
+pub enum CliError {
+    /// The arguments do not parse (clap's message, which starts with "error: ").
+    #[error("{0}")]
+    Usage(String),
+    /// A data or model file problem (names file, line, column).
+    #[error(transparent)]
+    Data(#[from] DataError),
+    /// The library failed.
+    #[error(transparent)]
+    Lib(#[from] crate::Error),
+    /// An argument combination the command rejects, in words.
+    #[error("{0}")]
+    Invalid(String),
+    /// Standard output could not be written.
+    #[error("cannot write output: {0}")]
+    Output(#[from] std::io::Error),
+}
+
+impl CliError {
+    /// The message as `main` prints it to stderr: `error: ...`, without doubling clap's own
+    /// `error: ` prefix.
+    pub fn message(&self) -> String {
+        match self {
+            CliError::Usage(m) => m.trim_end().to_string(),
+            e => format!("error: {e}"),
+        }
+    }
+}
+
+/// Parse `args` (including the program name) and run the command, printing to `out`.
+pub fn run<I, T>(args: I, out: &mut dyn Write) -> Result<(), CliError>
+where
+    I: IntoIterator<Item = T>,
+    T: Into<OsString> + Clone,
+{
+    let cli = match Cli::try_parse_from(args) {
+        Ok(c) => c,
+        Err(e) if e.use_stderr() => return Err(CliError::Usage(e.to_string())),
+        Err(e) => {
+            // --help / --version
+            write!(out, "{e}")?;
+            return Ok(());
+        }
+    };
+    match cli.command {
+        Command::Demo(a) => demo::run(&a, out),
+        Command::Pbsid(a) => pbsid::run(&a, out),
+        Command::Arx(a) => arx::run(&a, out),
+        Command::Validate(a) => validate::run_validate(&a, out),
+        Command::Simulate(a) => validate::run_simulate(&a, out),
+        Command::Stability(a) => stability::run(&a, out),
+        Command::Device(a) => device::run(&a, out),
+        Command::Diagnose(a) => diagnose::run(&a, out),
+    }
+}
+
+/// Numbers with `prec` decimals, space separated.
+fn fmt_list(v: &[f64], prec: usize) -> String {
+    v.iter()
+        .map(|x| format!("{x:.prec$}"))
+        .collect::<Vec<_>>()
+        .join(" ")
+}
+
+/// Pretty JSON on its own line.
+fn print_json(out: &mut dyn Write, v: &serde_json::Value) -> Result<(), CliError> {
+    let text = serde_json::to_string_pretty(v)
+        .map_err(|e| CliError::Invalid(format!("cannot encode the summary: {e}")))?;
+    writeln!(out, "{text}")?;
+    Ok(())
+}

@@ -1,0 +1,249 @@
+//! `lpvid pbsid`: LPV-PBSID_opt on a training file through [`crate::pipeline::identify`].
+
+use std::io::Write;
+use std::path::{Path, PathBuf};
+
+use clap::Args;
+use serde_json::{json, Value};
+
+use super::{fmt_list, print_json, CliError};
+use crate::data::Dataset;
+use crate::observer::{self, ObserverRequest};
+use crate::pbsid::{self, BpdnScore, Order, PbsidOptions, Reg, Solver};
+use crate::pipeline::{self, reg_name, DataFile, Identified, PbsidSettings};
+
+/// `lpvid pbsid` arguments.
+#[derive(Debug, Args)]
+pub struct PbsidArgs {
+    /// Training data (CSV: u1.., y1.., p1.. columns).
+    #[arg(long)]
+    pub train: PathBuf,
+    /// Validation data, scored by free-run simulation after the fit.
+    #[arg(long)]
+    pub val: Option<PathBuf>,
+    /// Past window p.
+    #[arg(long)]
+    pub past: usize,
+    /// Future window f <= p (row blocks of Gamma K Z used for the SVD); default p.
+    #[arg(long)]
+    pub future: Option<usize>,
+    /// Model order, or `auto` to take it from the singular-value gap.
+    #[arg(long, default_value = "auto")]
+    pub order: Order,
+    /// Solve the regression in its kernel (dual) form, never forming Z (kernel paper section 5).
+    #[arg(long, conflicts_with = "primal")]
+    pub kernel: bool,
+    /// Solve the regression from the primal statistics even when the kernel form is cheaper.
+    #[arg(long)]
+    pub primal: bool,
+    /// Kernel row selection (Algorithm 3): keep at most M rows of Z^T Z (implies --kernel).
+    #[arg(long, value_name = "M", conflicts_with = "primal")]
+    pub kernel_rows: Option<usize>,
+    /// Admission tolerance of the row selection, relative to the mean kernel diagonal
+    /// (0 keeps exactly the rows that span: the periodic-scheduling reduction).
+    #[arg(long, default_value_t = 0.0)]
+    pub kernel_tol: f64,
+    /// Refine the subspace model by output-error Levenberg-Marquardt on the training data
+    /// (removes the finite-window bias on open-loop data; off by default).
+    #[arg(long)]
+    pub refine: bool,
+    /// Regularisation of the regression: none (minimum norm), tikhonov-gcv, or sparse
+    /// bpdn-aic / bpdn-sv (how BPDN-SV scores its path: --bpdn-score).
+    #[arg(long, default_value = "tikhonov-gcv")]
+    pub reg: Reg,
+    /// How --reg bpdn-sv scores the points of its lasso path: simulation (default; the
+    /// free-run simulation of each point's realized model on --val, else on the whole
+    /// training record with an AIC order penalty, which also picks the order) or paper (the
+    /// sparse paper's Algorithm 1: one-step prediction error on --val, else on the last
+    /// quarter of --train with the path on the first three quarters; the order then from
+    /// the singular values). Only with --reg bpdn-sv.
+    #[arg(long, value_name = "simulation|paper")]
+    pub bpdn_score: Option<BpdnScore>,
+    /// Observer gain: ls (least squares K from the innovation estimates) or hinf (the
+    /// H-infinity LMI (30) of the sparse paper over the vertices of the scheduling box, gains
+    /// (31); if it fails the least-squares gain is kept and the summary says why).
+    #[arg(long, default_value = "ls", value_parser = ["ls", "hinf"])]
+    pub observer: String,
+    /// Operating range of a scheduling signal for the observer design and the stability
+    /// report, NAME=LO:HI (e.g. p1=-0.8:1.2); repeat or comma-separate; default: the
+    /// training data's range.
+    #[arg(
+        long = "scheduling-range",
+        value_name = "NAME=LO:HI",
+        allow_hyphen_values = true
+    )]
+    pub scheduling_range: Vec<String>,
+    /// Strictness margin of the LMIs (normalised units; see `lpvid_host::observer`).
+    #[arg(long, default_value_t = observer::DEFAULT_MARGIN)]
+    pub lmi_margin: f64,
+    /// Assume D = 0 (no direct feedthrough).
+    #[arg(long)]
+    pub no_feedthrough: bool,
+    /// Scheduling weight kappa: mean |p|^2 after internal scaling (prior on deep Kronecker terms).
+    #[arg(long, default_value_t = pbsid::DEFAULT_SCHED_WEIGHT)]
+    pub sched_weight: f64,
+    /// Largest order `--order auto` may choose.
+    #[arg(long, default_value_t = 20)]
+    pub max_order: usize,
+    /// Where to write the model (JSON).
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Print a JSON summary instead of the human one.
+    #[arg(long)]
+    pub json: bool,
+}
+
+fn pbsid_options(a: &PbsidArgs) -> PbsidOptions {
+    let mut o = PbsidOptions::new(a.past);
+    o.order = a.order;
+    o.reg = a.reg;
+    o.feedthrough = !a.no_feedthrough;
+    o.solver = if a.kernel {
+        Solver::Dual
+    } else if a.primal {
+        Solver::Primal
+    } else {
+        Solver::Auto
+    };
+    o.future = a.future;
+    o.sched_weight = a.sched_weight;
+    o.kernel_rows = a.kernel_rows;
+    o.kernel_tol = a.kernel_tol;
+    o.refine = a.refine;
+    o.max_order = a.max_order;
+    o.bpdn_score = a.bpdn_score.unwrap_or_default();
+    o
+}
+
+pub(super) fn print_pbsid(
+    run: &Identified,
+    opts: &PbsidOptions,
+    out: &mut dyn Write,
+) -> std::io::Result<()> {
+    let f = &run.fit;
+    let (r, l, s) = run.dims;
+    writeln!(
+        out,
+        "LPV-PBSID_opt on {}: {} samples, {r} inputs, {l} outputs, {s} scheduling signals",
+        run.train_score.file, run.samples
+    )?;
+    writeln!(
+        out,
+        "  past window p = {}, future f = {}: {} regressors, {} windows",
+        opts.past,
+        opts.future.unwrap_or(opts.past),
+        f.q,
+        f.windows
+    )?;
+    writeln!(out, "  solver: {}", f.solver_reason)?;
+    match f.lambda {
+        Some(lam) => writeln!(
+            out,
+            "  regularisation: {}{}, lambda = {lam:.3e} x {} ({:.1} effective parameters per output)",
+            reg_name(opts.reg),
+            if opts.reg == Reg::BpdnSv {
+                format!(" (score: {})", opts.bpdn_score.name())
+            } else {
+                String::new()
+            },
+            if matches!(opts.reg, Reg::BpdnSv | Reg::BpdnAic) {
+                "lambda_max"
+            } else {
+                "largest eigenvalue"
+            },
+            f.dof
+        )?,
+        None => writeln!(
+            out,
+            "  regularisation: none (minimum norm, {:.0} parameters per output)",
+            f.dof
+        )?,
+    }
+    writeln!(out, "  singular values of Gamma K Z:")?;
+    let top = f
+        .singular_values
+        .first()
+        .copied()
+        .unwrap_or(1.0)
+        .max(1e-300);
+    for (i, sv) in f.singular_values.iter().enumerate() {
+        let bar = ((sv / top).log10() * 6.0 + 60.0).max(0.0) as usize;
+        let mark = if i + 1 == f.order { "  <- order" } else { "" };
+        writeln!(
+            out,
+            "    {:>3} {:>12.5e} {}{mark}",
+            i + 1,
+            sv,
+            "#".repeat(bar.min(60))
+        )?;
+    }
+    writeln!(out, "  order n = {}: {}", f.order, f.order_reason)?;
+    for line in &run.observer.lines {
+        writeln!(out, "  {line}")?;
+    }
+    for sc in std::iter::once(&run.train_score).chain(run.val_score.iter()) {
+        writeln!(
+            out,
+            "  {} ({}): VAF {} %  (mean {:.3}), BFR {} %  (mean {:.3})",
+            sc.file,
+            sc.mode,
+            fmt_list(&sc.vaf, 3),
+            sc.vaf_mean,
+            fmt_list(&sc.bfr, 2),
+            sc.bfr_mean
+        )?;
+    }
+    Ok(())
+}
+
+pub(super) fn pbsid_json(run: &Identified, out_path: Option<&Path>) -> Value {
+    json!({
+        "command": "pbsid",
+        "order": run.fit.order,
+        "order_reason": run.fit.order_reason,
+        "singular_values": run.fit.singular_values,
+        "solver": run.fit.solver.name(),
+        "lambda": run.fit.lambda,
+        "train": run.train_score,
+        "val": run.val_score,
+        "out": out_path.map(|p| p.display().to_string()),
+        "fit": run.model.fit,
+        "observer": run.observer.used,
+        "stability_region": run.observer.stability_json(),
+    })
+}
+
+/// Run `lpvid pbsid`.
+pub(super) fn run(a: &PbsidArgs, out: &mut dyn Write) -> Result<(), CliError> {
+    if a.bpdn_score.is_some() && a.reg != Reg::BpdnSv {
+        return Err(CliError::Invalid(format!(
+            "--bpdn-score applies to --reg bpdn-sv only (got --reg {})",
+            reg_name(a.reg)
+        )));
+    }
+    let settings = PbsidSettings {
+        fit: pbsid_options(a),
+        observer: ObserverRequest {
+            hinf: a.observer == "hinf",
+            ranges: a.scheduling_range.clone(),
+            opts: observer::HinfOptions {
+                margin: a.lmi_margin,
+                ..Default::default()
+            },
+        },
+    };
+    let train = DataFile::read(&a.train)?;
+    let val = match &a.val {
+        Some(p) => Some(Dataset::read_csv(p)?),
+        None => None,
+    };
+    let run = pipeline::identify(&train, val.as_ref(), &settings)?;
+    run.model.write(&a.out)?;
+    if a.json {
+        print_json(out, &pbsid_json(&run, Some(&a.out)))?;
+    } else {
+        print_pbsid(&run, &settings.fit, out)?;
+        writeln!(out, "  model written to {}", a.out.display())?;
+    }
+    Ok(())
+}
