@@ -275,13 +275,7 @@ impl Spec {
     }
 }
 
-/// The order rule as the fit record writes it.
-pub fn order_rule(o: Order) -> String {
-    match o {
-        Order::Auto => "auto".into(),
-        Order::Fixed(n) => n.to_string(),
-    }
-}
+pub use crate::record::order_rule;
 
 /// Is input column j constant on the training data?
 fn constant_column(u: &DMatrix<f64>, j: usize) -> bool {
@@ -350,25 +344,11 @@ pub fn fit_spec(spec: &Spec, train: &Dataset, base_fit: &Value) -> Result<Fitted
         Value::Object(m) => m.clone(),
         _ => Map::new(),
     };
-    let o = &spec.opts;
+    // the record every fit writes (the same function as `lpvid pbsid`), then what a refit adds
+    let train_rec = json!({"file": train.source, "rows": train.len()});
+    let common = crate::record::pbsid_fit_record(&spec.opts, &f, train_rec);
     let updates = json!({
-        "method": "lpv-pbsid-opt",
-        "past": o.past,
-        "future": o.future.unwrap_or(o.past),
-        "order": f.order,
-        "order_rule": order_rule(o.order),
-        "order_reason": f.order_reason,
-        "max_order": o.max_order,
         "reg": spec.reg_text,
-        "lambda": f.lambda,
-        "effective_parameters": f.dof,
-        "solver": f.solver.name(),
-        "solver_reason": f.solver_reason,
-        "feedthrough": o.feedthrough,
-        "sched_weight": o.sched_weight,
-        "regressors": f.q,
-        "windows": f.windows,
-        "singular_values": f.singular_values,
         "output_equation": output_eq,
         "constant_inputs": if centre {
             Value::from("varying inputs and outputs centred for PBSID; constant channels' B^(i), D by output-error least squares given A(mu), C")
@@ -385,16 +365,13 @@ pub fn fit_spec(spec: &Spec, train: &Dataset, base_fit: &Value) -> Result<Fitted
         },
         "train_rows": train.len(),
     });
-    if let Value::Object(u) = updates {
-        for (k, v) in u {
-            rec.insert(k, v);
+    for u in [common, updates] {
+        if let Value::Object(u) = u {
+            for (k, v) in u {
+                rec.insert(k, v);
+            }
         }
     }
-    rec.remove("train");
-    rec.insert(
-        "train".into(),
-        json!({"file": train.source, "rows": train.len()}),
-    );
     let model = ModelFile {
         kind: ModelKind::Ss(ss),
         signals: spec.signals.clone(),

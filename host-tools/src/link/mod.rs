@@ -161,6 +161,59 @@ pub fn f64_to_values(vals: &[f64], float_bytes: u8, out: &mut Vec<u8>) {
     }
 }
 
+/// The size of the next frame's payload (samples streamed, values pulled) on a line that
+/// may be noisy: halved when a multi-item frame is not acknowledged within
+/// [`SHRINK_AFTER`] retransmissions (a single item gets the full budget), doubled back
+/// toward `max` after [`GROW_AFTER`] clean exchanges.
+#[derive(Debug, Clone, Copy)]
+struct Adaptive {
+    size: usize,
+    max: usize,
+    clean: u32,
+}
+
+impl Adaptive {
+    fn new(max: usize) -> Adaptive {
+        Adaptive {
+            size: max,
+            max,
+            clean: 0,
+        }
+    }
+
+    /// Retransmissions allowed for the next frame.
+    fn retries(&self, budget: u32) -> u32 {
+        if self.size > 1 {
+            SHRINK_AFTER.min(budget)
+        } else {
+            budget
+        }
+    }
+
+    /// After a frame went unanswered: halve, if there is anything to halve.
+    fn shrink(&mut self) -> bool {
+        if self.size <= 1 {
+            return false;
+        }
+        self.size = (self.size / 2).max(1);
+        self.clean = 0;
+        true
+    }
+
+    /// After an acknowledged frame (`clean`: without retransmissions).
+    fn exchanged(&mut self, clean: bool) {
+        if !clean {
+            self.clean = 0;
+            return;
+        }
+        self.clean += 1;
+        if self.clean >= GROW_AFTER && self.size < self.max {
+            self.size = (self.size * 2).min(self.max);
+            self.clean = 0;
+        }
+    }
+}
+
 /// A received frame: (seq, reply), or why it was rejected.
 type Frame = Result<(u32, Reply), ErrorCode>;
 
@@ -487,9 +540,7 @@ impl<P: Read + Write> Link<P> {
             return Err(LinkError::Protocol("sample rows of unequal length".into()));
         }
         let n = rows.len() / per;
-        let max_bs = self.batch_size(per);
-        let mut bs = max_bs;
-        let mut clean = 0u32;
+        let mut bs = Adaptive::new(self.batch_size(per));
         let fb = self.float_bytes();
         let mut done = 0usize;
         let mut last = None;
@@ -498,14 +549,10 @@ impl<P: Read + Write> Link<P> {
             if done >= n {
                 break Ok(());
             }
-            let k = bs.min(n - done);
+            let k = bs.size.min(n - done);
             f64_to_values(&rows[done * per..(done + k) * per], fb, &mut vals);
             let start = first + done as u32;
-            let retries = if bs > 1 {
-                SHRINK_AFTER.min(self.opts.retries)
-            } else {
-                self.opts.retries
-            };
+            let retries = bs.retries(self.opts.retries);
             let before = self.stats.retries;
             let reply = self.request_n(
                 &Message::Samples {
@@ -530,22 +577,10 @@ impl<P: Read + Write> Link<P> {
                     )))
                 }
                 Ok(r) => break Err(unexpected("Status", &r)),
-                Err(LinkError::NoReply { .. }) if bs > 1 => {
-                    bs = (bs / 2).max(1);
-                    clean = 0;
-                    continue;
-                }
+                Err(LinkError::NoReply { .. }) if bs.shrink() => continue,
                 Err(e) => break Err(e),
             }
-            if self.stats.retries == before {
-                clean += 1;
-                if clean >= GROW_AFTER && bs < max_bs {
-                    bs = (bs * 2).min(max_bs);
-                    clean = 0;
-                }
-            } else {
-                clean = 0;
-            }
+            bs.exchanged(self.stats.retries == before);
             progress(done);
         };
         self.vals = vals;
@@ -563,21 +598,16 @@ impl<P: Read + Write> Link<P> {
             .clamp(1, u16::MAX as usize);
         let mut out = Vec::with_capacity(total);
         // chunks shrink on a noisy line and grow back, as in `stream`
-        let mut size = chunk;
-        let mut clean = 0u32;
+        let mut size = Adaptive::new(chunk);
         while out.len() < total {
             let offset = out.len() as u32;
-            let count = size.min(total - out.len()) as u16;
+            let count = size.size.min(total - out.len()) as u16;
             let msg = if solution {
                 Message::PullSolution { offset, count }
             } else {
                 Message::PullStats { offset, count }
             };
-            let retries = if size > 1 {
-                SHRINK_AFTER.min(self.opts.retries)
-            } else {
-                self.opts.retries
-            };
+            let retries = size.retries(self.opts.retries);
             let before = self.stats.retries;
             match self.request_n(&msg, retries) {
                 Ok(Reply::Values {
@@ -588,22 +618,10 @@ impl<P: Read + Write> Link<P> {
                     out.extend_from_slice(&values);
                 }
                 Ok(r) => return Err(unexpected("Values", &r)),
-                Err(LinkError::NoReply { .. }) if size > 1 => {
-                    size = (size / 2).max(1);
-                    clean = 0;
-                    continue;
-                }
+                Err(LinkError::NoReply { .. }) if size.shrink() => continue,
                 Err(e) => return Err(e),
             }
-            if self.stats.retries == before {
-                clean += 1;
-                if clean >= GROW_AFTER && size < chunk {
-                    size = (size * 2).min(chunk);
-                    clean = 0;
-                }
-            } else {
-                clean = 0;
-            }
+            size.exchanged(self.stats.retries == before);
         }
         out.truncate(total);
         Ok(out)
