@@ -6,12 +6,12 @@
 # qemu-system-arm: the firmware's Cortex-M4F board (mps2-an386) for make device-test.
 DEB_PACKAGES := pkg-config libopenblas-dev qemu-system-arm
 
-.PHONY: demo test setup check-fmt clippy core-thumb test-all bench device-test
+.PHONY: demo test setup check-fmt clippy core-thumb host-lib test-all bench device-test
 
 demo: setup
 	cargo run --release -p lpvid-host --bin lpvid -- demo
 
-test: setup check-fmt clippy core-thumb test-all device-test
+test: setup check-fmt clippy core-thumb host-lib test-all device-test
 
 setup:
 	bash scripts/setup.sh $(DEB_PACKAGES)
@@ -33,6 +33,14 @@ core-thumb:
 	  echo "core-thumb: the no-default-features core pulls wire crates:"; echo "$$tree"; exit 1; \
 	fi; \
 	echo "core-thumb: no-default-features dependencies: $$(echo "$$tree" | awk '{print $$1}' | sort -u | tr '\n' ' ')"
+
+# The host library without the command line: clap and indicatif absent from its dependency
+# list proves that no library module imports the CLI (layers: core <- library <- front ends).
+host-lib:
+	cargo check -p lpvid-host --lib --no-default-features
+	@if cargo tree -p lpvid-host --no-default-features -e normal --prefix none | grep -Eq '^(clap|indicatif) '; then \
+	  echo "host-lib: the library without the cli feature still pulls clap/indicatif"; exit 1; \
+	fi; echo "host-lib: the library builds without the command line"
 
 # Unit, integration and acceptance tests (release: the acceptance tests are Monte-Carlo runs).
 test-all:

@@ -161,6 +161,46 @@ pub fn f64_to_values(vals: &[f64], float_bytes: u8, out: &mut Vec<u8>) {
     }
 }
 
+/// A model's values in the wire layout `[A | B | K | C | D]` of [`lpvid::model`] (the one
+/// layout the device engine reads back).
+pub fn model_values(model: &LpvSs) -> Result<Vec<f64>, LinkError> {
+    let sched = model.c.len() > 1 || model.d.len() > 1;
+    let dims = lpvid::model::ModelDims::new(model.n(), model.r(), model.l(), model.m(), sched)
+        .map_err(|e| LinkError::Protocol(format!("model: {e}")))?;
+    let len = dims
+        .values_len()
+        .map_err(|e| LinkError::Protocol(format!("model: {e}")))?;
+    // row-major data of each matrix (nalgebra stores column-major)
+    let rows = |mats: &[nalgebra::DMatrix<f64>]| -> Vec<Vec<f64>> {
+        mats.iter()
+            .map(|m| m.transpose().as_slice().to_vec())
+            .collect()
+    };
+    let (a, b, k, c, d) = (
+        rows(&model.a),
+        rows(&model.b),
+        rows(&model.k),
+        rows(&model.c),
+        rows(&model.d),
+    );
+    let mut vals = vec![0.0; len];
+    dims.pack(
+        &mut vals,
+        &slices(&a),
+        &slices(&b),
+        &slices(&k),
+        &slices(&c),
+        &slices(&d),
+    )
+    .map_err(|e| LinkError::Protocol(format!("model: {e}")))?;
+    Ok(vals)
+}
+
+/// Borrowed slices of owned rows.
+fn slices(v: &[Vec<f64>]) -> Vec<&[f64]> {
+    v.iter().map(Vec::as_slice).collect()
+}
+
 /// The size of the next frame's payload (samples streamed, values pulled) on a line that
 /// may be noisy: halved when a multi-item frame is not acknowledged within
 /// [`SHRINK_AFTER`] retransmissions (a single item gets the full budget), doubled back
@@ -661,25 +701,8 @@ impl<P: Read + Write> Link<P> {
     pub fn push_model(&mut self, model: &LpvSs) -> Result<usize, LinkError> {
         let info = self.ensure_hello()?;
         model.check().map_err(LinkError::Protocol)?;
-        let m = model.m();
         let sched = model.c.len() > 1 || model.d.len() > 1;
-        let mut vals = Vec::new();
-        let mut push = |mats: &[nalgebra::DMatrix<f64>], count: usize| {
-            for i in 0..count {
-                let mat = if mats.len() == 1 { &mats[0] } else { &mats[i] };
-                for r in 0..mat.nrows() {
-                    for c in 0..mat.ncols() {
-                        vals.push(mat[(r, c)]);
-                    }
-                }
-            }
-        };
-        push(&model.a, m);
-        push(&model.b, m);
-        push(&model.k, m);
-        let mc = if sched { m } else { 1 };
-        push(&model.c, mc);
-        push(&model.d, mc);
+        let vals = model_values(model)?;
         let n = u16::try_from(model.n())
             .map_err(|_| LinkError::Protocol("model order too large".into()))?;
         let fb = info.float_bytes;
