@@ -1,5 +1,6 @@
-//! The wire protocol between a device and the host (DESIGN.md section 3.6): one definition,
-//! compiled into the firmware and into the host tool, so the two cannot drift.
+//! The wire protocol between a device and the host (DESIGN.md section 3.6; no paper equation
+//! lives here): one definition, compiled into the firmware and into the host tool, so the two
+//! cannot drift. Written down byte by byte in `docs/wire.md`. Cargo feature `device`.
 //!
 //! **Frame.** `COBS(raw) 0x00`, with
 //! `raw = [version: u8] ++ postcard(Packet { seq, msg }) ++ crc32(version ++ body) as u32 LE`.
@@ -29,6 +30,26 @@
 //! ([`ErrorCode::Gap`]) instead of hiding it. `seq` 0 marks an unsolicited reply: the
 //! rejection (NAK) of a frame the device could not decode, so the host need not wait for a
 //! timeout to retransmit.
+//!
+//! **COBS: why this module has its own and not postcard's.** postcard 1.1 (our version) has a
+//! COBS serializer flavor (`to_slice_cobs`), `from_bytes_cobs` and a `CobsAccumulator`; none
+//! fits this frame, so the ~60 lines of [`cobs_encode`] / [`cobs_decode_in_place`] stay:
+//! - they stuff the postcard body only, while our frame stuffs version byte + body + CRC-32,
+//!   and the version and CRC must be checked *before* postcard interprets a field
+//!   (`from_bytes_cobs` decodes and deserializes in one step; the in-place decoder alone lives
+//!   in the `cobs` crate, which postcard does not re-export);
+//! - the accumulator deserializes at each delimiter with no hook for those checks and no
+//!   reason for a failure (one `DeserError` where we NAK with [`ErrorCode::BadCobs`],
+//!   [`ErrorCode::BadCrc`], [`ErrorCode::WrongVersion`], ...), treats the empty frame a sender
+//!   leads with (0x00 0x00) as an error, and after an over-long frame restarts in the middle
+//!   of it (its tail becomes a second, bogus frame) where [`Deframer`] drops everything up to
+//!   the next delimiter and reports [`ErrorCode::Oversize`] once;
+//! - encoding alone could go through postcard's flavor (with a custom flavor for the version
+//!   and the CRC), but then two COBS implementations would have to agree byte for byte
+//!   (the 254-byte block boundary included), which is what keeping one avoids.
+//! Both directions are allocation-free, bounded by the caller's buffers and fuzzed
+//! (`tests/protocol_fuzz.rs`); the bytes are pinned by a unit test and written down in
+//! `docs/wire.md`.
 //!
 //! **Values.** Samples, statistics, solutions and models travel as little-endian floats of
 //! the device's type ([`Info::float_bytes`]: 4 for f32, 8 for f64), in byte slices borrowed
@@ -307,7 +328,8 @@ pub struct Info {
     pub vector_cap: u32,
     /// Solver storage, values ((3 l + 2)(q + r) needed for a solve).
     pub solver_cap: u32,
-    /// Model storage, values (parameters + 2 n + 2 l needed for a pushed model).
+    /// Model storage, values (parameters + the predictor state 2 n + 3 l needed for a
+    /// pushed model, [`crate::model`]).
     pub model_cap: u32,
     /// Largest r + l + s.
     pub max_channels: u16,
@@ -840,6 +862,23 @@ mod tests {
         r2.extend_from_slice(&crc.to_le_bytes());
         let k = cobs_encode(&r2, &mut e).unwrap();
         assert_eq!(decode_frame(&mut e[..k]), Err(ErrorCode::UnknownMessage));
+    }
+
+    /// The bytes on the wire, as docs/wire.md shows them: a change here is a protocol change.
+    #[test]
+    fn frame_bytes_are_pinned() {
+        let mut raw = [0u8; 64];
+        let mut out = [0u8; 64];
+        let n = encode_frame(1, &Message::Reset, &mut raw, &mut out).unwrap();
+        assert_eq!(
+            &out[..n],
+            &[0x08, 0x01, 0x01, 0x0c, 0x4f, 0xce, 0x2e, 0xee, 0x00]
+        );
+        let n = encode_frame(5, &Message::Hello { version: 1 }, &mut raw, &mut out).unwrap();
+        assert_eq!(
+            &out[..n],
+            &[0x03, 0x01, 0x05, 0x06, 0x01, 0x04, 0x4a, 0x34, 0xe8, 0x00]
+        );
     }
 
     #[test]
