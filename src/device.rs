@@ -1,6 +1,10 @@
-//! The device engine: bytes in, bytes out (DESIGN.md section 3.6). Transport-agnostic (a
-//! UART in the firmware, a pseudo-terminal in the host's tests), allocation-free, and it owns
-//! the statistics.
+//! The device engine: bytes in, bytes out (DESIGN.md section 3.6; the wire is written down in
+//! `docs/wire.md`). Transport-agnostic (a UART in the firmware, a pseudo-terminal in the
+//! host's tests), allocation-free, and it owns the statistics. Cargo feature `device`.
+//! Where it touches the papers: the statistics of problem (13) of the kernel paper
+//! ([`crate::stats`]), their solve with the l1 / l2,1 Lasso (sparse paper problem (33),
+//! [`crate::lasso`]) and the one-step predictor of an LPV state-space model (kernel paper
+//! eq. (1)-(2) in innovation form, [`crate::model`]).
 //!
 //! - **Framing**: a [`Deframer`] splits the input at 0x00; every frame is decoded with
 //!   [`decode_frame`]. A frame that fails (garbage, bytes lost or flipped, cut short, too

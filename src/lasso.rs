@@ -45,13 +45,26 @@ use crate::error::{check_vec, Error, Field};
 use crate::real::{first_non_finite, Real};
 use crate::stats::Gram;
 
+/// G_jj, or [`Error::NonFinite`] (index j q + j of the dense G) when it is NaN or infinite.
+fn finite_diagonal<T: Real, M: SymMatrix<T> + ?Sized>(g: &M, j: usize) -> Result<T, Error> {
+    let v = g.get(j, j);
+    if v.is_finite() {
+        Ok(v)
+    } else {
+        Err(Error::NonFinite {
+            field: Field::Regressor,
+            index: j * g.dim() + j,
+        })
+    }
+}
+
 /// A symmetric q x q matrix the engine reads entry by entry.
 pub trait SymMatrix<T> {
     /// Dimension q.
     fn dim(&self) -> usize;
     /// Entry (i, j), i, j < dim.
     fn get(&self, i: usize, j: usize) -> T;
-    /// out[k] += alpha * G[j, k] for k < dim: the update a coordinate step makes. The
+    /// `out[k] += alpha * G[j, k]` for k < dim: the update a coordinate step makes. The
     /// default reads entries one by one; a lazily evaluated G overrides it to fetch column
     /// j once and run a vectorised loop.
     fn add_scaled_column(&self, j: usize, alpha: T, out: &mut [T])
@@ -396,14 +409,7 @@ impl<T: Real, S: AsRef<[T]> + AsMut<[T]>> CoordinateDescent<T, S> {
         // active columns) is never expanded; a non-finite off-diagonal entry makes Theta or
         // R non-finite and is reported as `NoConvergence` by the sweep that meets it.
         for i in 0..q {
-            let v = g.get(i, i);
-            if !v.is_finite() {
-                return Err(Error::NonFinite {
-                    field: Field::Regressor,
-                    index: i * q + i,
-                });
-            }
-            dmax = dmax.max(v.abs());
+            dmax = dmax.max(finite_diagonal(g, i)?.abs());
         }
         let flat = dmax * T::EPSILON * T::of(q as f64);
         let mut s0 = T::ZERO;
@@ -875,14 +881,7 @@ pub fn refit<T: Real, M: SymMatrix<T> + ?Sized>(
         flags[j] = if inside { T::ONE } else { T::ZERO };
         if inside {
             k += 1;
-            let d = g.get(j, j);
-            if !d.is_finite() {
-                return Err(Error::NonFinite {
-                    field: Field::Regressor,
-                    index: j * q + j,
-                });
-            }
-            dmax = dmax.max(d.abs());
+            dmax = dmax.max(finite_diagonal(g, j)?.abs());
         }
     }
     // G_SS, dense k x k

@@ -17,9 +17,9 @@
 //! - [`lasso`]: coordinate-descent Lasso on statistics, l1 (BC-IV cost (10)) and l2,1 (sparse paper (33)).
 //! - [`model`]: the `[A|B|K|C|D]` value layout of an LPV state-space model and its one-step
 //!   predictor (kernel paper eq. (1)-(2), innovation form), shared by the device and the host.
-//! - [`protocol`] (feature `device`): the device-host wire frames (COBS, CRC-32, postcard
+//! - `protocol` (feature `device`): the device-host wire frames (COBS, CRC-32, postcard
 //!   messages), shared by both; written down in `docs/wire.md`.
-//! - [`device`] (feature `device`): the transport-agnostic device engine (bytes in, bytes
+//! - `device` (feature `device`): the transport-agnostic device engine (bytes in, bytes
 //!   out, owns the statistics).
 //!
 //! Cargo feature `device` (default on) adds serde + postcard and the two wire modules;

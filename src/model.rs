@@ -5,7 +5,8 @@
 //! **Model** (kernel paper eq. (1)-(2) in innovation form, DESIGN.md section 5 `lpv-ss`):
 //! x_{k+1} = sum_i mu_k^(i) (A^(i) x_k + B^(i) u_k + K^(i) e_k), y_k = C x_k + D u_k + e_k,
 //! mu_k = [1, p_k] (m = s + 1 local models); C and D are either one matrix each or, with a
-//! scheduled output equation, C(mu) = sum_i mu^(i) C^(i) and likewise D.
+//! scheduled output equation (the LPV output equation section 2.1 of the kernel paper sets
+//! aside; DESIGN.md section 5), C(mu) = sum_i mu^(i) C^(i) and likewise D.
 //!
 //! **Value layout** `[A | B | K | C | D]`, every matrix row-major, local models in order:
 //! A^(1..m) (n x n each), B^(1..m) (n x r), K^(1..m) (n x l), then C^(1..mc) (l x n) and
@@ -13,7 +14,8 @@
 //! m n (n + r + l) + mc l (n + r) ([`ModelDims::values_len`], [`values_len`]); offsets
 //! [`ModelDims::a_offset`] .. [`ModelDims::d_offset`].
 //!
-//! **Predictor** (the model with e_k replaced by the measured innovation):
+//! **Predictor** (the model with e_k replaced by the measured innovation: the predictor form
+//! (3)-(4) of the kernel paper, section 2.1, kept in the A, B, K of (1) rather than A~, B~):
 //! yhat_k = C(mu_k) x_k + D(mu_k) u_k, e_k = y_k - yhat_k,
 //! x_{k+1} = sum_i mu_k^(i) (A^(i) x_k + B^(i) u_k + K^(i) e_k), from x_0 = 0. Its state is a
 //! slice of [`ModelDims::state_len`] = 2 n + 3 l values `[x (n) | x_next (n) | e (l) |

@@ -47,6 +47,7 @@
 //! - encoding alone could go through postcard's flavor (with a custom flavor for the version
 //!   and the CRC), but then two COBS implementations would have to agree byte for byte
 //!   (the 254-byte block boundary included), which is what keeping one avoids.
+//!
 //! Both directions are allocation-free, bounded by the caller's buffers and fuzzed
 //! (`tests/protocol_fuzz.rs`); the bytes are pinned by a unit test and written down in
 //! `docs/wire.md`.

@@ -1,5 +1,6 @@
 //! The float abstraction of the core: everything is generic over `f32` (Cortex-M4F) and
-//! `f64` (host). A deliberately small trait so the core needs no numeric crate.
+//! `f64` (host). A deliberately small trait so the core needs no numeric crate. No paper
+//! equation lives here (DESIGN.md section 3: generic over the float type).
 
 use core::fmt::{Debug, Display};
 use core::iter::Sum;

@@ -1,4 +1,6 @@
-//! Sufficient statistics: streaming second moments, mergeable.
+//! Sufficient statistics: streaming second moments, mergeable (kernel paper section 4:
+//! problem (13), and with the extended layout the realization of section 4.3; sparse paper
+//! problem (33) is solved from the same statistics by [`crate::lasso`]).
 //!
 //! [`Gram`] accumulates sum_k w_k w_k^T (packed upper triangle) for any vector w; it is the
 //! one second-moment accumulator of the project (the host's least-squares steps use it too).
@@ -803,15 +805,6 @@ mod tests {
         const D: usize = stat_vector_len_const(2, 1, 1, 2, true);
         const G: usize = packed_len(D);
         type St = PbsidStatsArrays<f64, W, G, D>;
-        let feed = |st: &mut St, n: usize| {
-            let (r, s) = (st.dims().r, st.dims().s);
-            for k in 0..n {
-                let x = k as f64;
-                let u = [0.3 * x - 1.0, (0.7 * x).sin()];
-                st.update(&u[..r], &[(1.1 * x).cos()], &[0.05 * x][..s])
-                    .unwrap();
-            }
-        };
         let dims_a = PbsidDims::new(2, 1, 1, 2).unwrap();
         let dims_b = PbsidDims::new(1, 1, 1, 2).unwrap();
         let mut by_value = St::new(dims_a, StatsLayout::Extended).unwrap();
@@ -857,13 +850,13 @@ mod tests {
             vec![0.0; D],
         )
         .unwrap();
-        feed_vec(&mut v, 7);
+        feed(&mut v, 7);
         let gram_ptr = v.gram().packed().as_ptr();
         v.reconfigure(dims_a, StatsLayout::Extended, vec![0.0; W])
             .unwrap();
         assert_eq!(v.gram().count(), 0);
         assert_eq!(v.gram().packed().as_ptr(), gram_ptr);
-        feed_vec(&mut v, 20);
+        feed(&mut v, 20);
         assert_eq!(v.gram().packed(), by_value.gram().packed());
         assert_eq!(v.layout(), StatsLayout::Extended);
         let before = v.gram().packed().to_vec();
@@ -882,7 +875,13 @@ mod tests {
         assert_eq!(g.dim(), 3);
     }
 
-    fn feed_vec(st: &mut PbsidStats<f64, Vec<f64>, Vec<f64>, Vec<f64>>, n: usize) {
+    /// Feed n samples of a fixed signal (r <= 2, s <= 1), whatever the storage.
+    fn feed<SW, SG, SR>(st: &mut PbsidStats<f64, SW, SG, SR>, n: usize)
+    where
+        SW: AsRef<[f64]> + AsMut<[f64]>,
+        SG: AsRef<[f64]> + AsMut<[f64]>,
+        SR: AsRef<[f64]> + AsMut<[f64]>,
+    {
         let (r, s) = (st.dims().r, st.dims().s);
         for k in 0..n {
             let x = k as f64;
