@@ -66,6 +66,28 @@ pub fn gram_update_batch<S: AsRef<[f64]> + AsMut<[f64]>>(
     gram.update_batch(rows, n)
 }
 
+/// The core's Gram of `count` vectors of length `len`, each written by `row(k, dst)` into a
+/// batch of [`GRAM_BATCH`] and accumulated by [`gram_update_batch`]: the one batching loop
+/// of the host's statistics (the primal regression, the diagnosis' residual regressions).
+pub fn gram_from_rows(
+    len: usize,
+    count: usize,
+    mut row: impl FnMut(usize, &mut [f64]),
+) -> Result<lpvid::Gram<f64, Vec<f64>>, lpvid::Error> {
+    let mut gram = lpvid::Gram::new(len, vec![0.0; lpvid::packed_len(len)])?;
+    let mut buf = vec![0.0; GRAM_BATCH * len];
+    let mut k = 0;
+    while k < count {
+        let nb = GRAM_BATCH.min(count - k);
+        for b in 0..nb {
+            row(k + b, &mut buf[b * len..(b + 1) * len]);
+        }
+        gram_update_batch(&mut gram, &buf[..nb * len], nb)?;
+        k += nb;
+    }
+    Ok(gram)
+}
+
 /// Mean and (population) standard deviation of a column.
 pub fn mean_std(v: impl Iterator<Item = f64> + Clone) -> (f64, f64) {
     let n = v.clone().count() as f64;

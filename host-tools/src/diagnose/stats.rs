@@ -3,7 +3,6 @@
 //! periodogram, the batch-means test of a mean, and least squares through the core's
 //! mergeable [`lpvid::Gram`] (one least-squares code path for every fit diagnose makes).
 
-use lpvid::{packed_len, Gram};
 use nalgebra::DMatrix;
 
 use crate::linalg::min_norm_from_normal;
@@ -481,7 +480,7 @@ pub fn batch_count(n: usize) -> usize {
 // ------------------------------------------------------------------------------------------
 
 /// Second moments of rows [phi_k; t_k] (`row(k, buf)` writes one) accumulated by the core's
-/// [`Gram`] on columns scaled to unit RMS (a first pass measures them, so badly scaled
+/// [`lpvid::Gram`] on columns scaled to unit RMS (a first pass measures them, so badly scaled
 /// physical units do not spoil the conditioning). Returns the dense scaled moment matrix and
 /// the scale factors (scaled column = raw column x factor).
 pub fn moments(
@@ -508,23 +507,13 @@ pub fn moments(
             }
         })
         .collect();
-    let mut g = Gram::new(d, vec![0.0; packed_len(d)]).map_err(|e| e.to_string())?;
-    const BATCH: usize = crate::linalg::GRAM_BATCH;
-    let mut batch = vec![0.0; BATCH * d];
-    let mut k = 0;
-    while k < rows {
-        let nb = BATCH.min(rows - k);
-        for b in 0..nb {
-            let dst = &mut batch[b * d..(b + 1) * d];
-            row(k + b, dst);
-            for (v, s) in dst.iter_mut().zip(&scale) {
-                *v *= s;
-            }
+    let g = crate::linalg::gram_from_rows(d, rows, |k, dst| {
+        row(k, dst);
+        for (v, s) in dst.iter_mut().zip(&scale) {
+            *v *= s;
         }
-        crate::linalg::gram_update_batch(&mut g, &batch[..nb * d], nb)
-            .map_err(|e| e.to_string())?;
-        k += nb;
-    }
+    })
+    .map_err(|e| e.to_string())?;
     Ok((DMatrix::from_fn(d, d, |i, j| g.get(i, j)), scale))
 }
 

@@ -60,6 +60,7 @@ use lpvid::window::write_pbsid_regressor;
 use lpvid::{PbsidDims, Samples, Slab};
 use nalgebra::DMatrix;
 
+use super::realize::{realize_from_states, states_from_gkz};
 use crate::lpvss::{LpvSs, Signals};
 
 /// Regressors of windows laid out row-wise (row j = regressor j over the windows), with the
@@ -340,7 +341,7 @@ pub fn select(
 /// Gamma^p K^p Z of eq. (14)-(15) for windows 0..=N-p from a sparse [C K^p, D] (`theta`,
 /// l x qf row-major; the D columns q..qf are not part of Gamma K), touching only the
 /// non-zero columns: row block i of Gamma^p K^p holds, in column block j >= i, the leading
-/// m^{p-j+1}(r+l) columns of block j - i + 1 of C K^p (the layout of [`crate::pbsid::gamma_k`]).
+/// m^{p-j+1}(r+l) columns of block j - i + 1 of C K^p (the layout of [`super::realize::gamma_k`]).
 /// `g` holds the regressors of windows 0..N-p-1, `z_last` the regressor of window N-p.
 /// Cost: (active columns) x f x l x N instead of f l q N for the dense product.
 pub fn gamma_kz(
@@ -377,15 +378,6 @@ pub fn gamma_kz(
         }
     }
     out
-}
-
-/// Eq. (15)-(16) on an explicit Gamma K Z (windows 0..=N-p): singular values from the
-/// eigenvalues of the Gram of its first `windows` columns, state candidates U^T Gamma K Z.
-pub fn states(gkz: &DMatrix<f64>, windows: usize) -> Result<(Vec<f64>, DMatrix<f64>), String> {
-    let reg = gkz.columns(0, windows);
-    let (vals, u) = crate::linalg::sym_eig(&(reg * reg.transpose()))?;
-    let sv = vals.iter().map(|v| v.max(0.0).sqrt()).collect();
-    Ok((sv, u.transpose() * gkz))
 }
 
 /// The scaled samples of `slab` as signals (inputs, outputs, scheduling mu[1..]).
@@ -525,18 +517,17 @@ pub fn select_by_simulation(
                 lmax = fit.lambda;
             }
             let gkz = gamma_kz(dims, f, th, g, &z_last);
-            let (sv, x) = match states(&gkz, windows) {
+            let (sv, x) = match states_from_gkz(&gkz, windows) {
                 Ok(v) => v,
                 Err(e) => {
-                    err_msg = Some(e);
+                    err_msg = Some(e.0);
                     return ControlFlow::Break(());
                 }
             };
             let mut improved = false;
             for &n in &orders {
                 let states = x.rows(0, n).into_owned();
-                let Ok(model) = crate::pbsid::realize_from_states(dims, slab, &states, feedthrough)
-                else {
+                let Ok(model) = realize_from_states(dims, slab, &states, feedthrough) else {
                     continue;
                 };
                 let v = simulation_error(&model, &scored);
@@ -640,7 +631,7 @@ mod tests {
         for f in [1, 2, p] {
             let sparse = gamma_kz(&dims, f, &theta, &g, &z_last);
             let ck = DMatrix::from_fn(l, q, |o, j| theta[o * qf + j]);
-            let gk = crate::pbsid::gamma_k(&dims, f, &ck);
+            let gk = super::super::realize::gamma_k(&dims, f, &ck);
             let mut z = vec![0.0; q];
             for k in 0..=windows {
                 write_pbsid_regressor(&dims, &slab, k, &mut z);

@@ -1,0 +1,227 @@
+//! The dual (kernel) form of regression (13) (kernel paper,
+//! `papers/lpv-pbsid-kernel-automatica2009.md`, section 5, Algorithm 2): the kernel
+//! Z^T Z + U^T U of (19) by Theorem 10, alpha from (19)-(22), Gamma^p K^p Z by eq. (25) —
+//! both through the batched sweep of [`crate::kernel_sweep`] — and the kernel selection of
+//! Algorithm 3 (section 6.2) with the periodic-scheduling check of section 6.1.
+
+use lpvid::dictionary::{
+    dictionary_gram_len, dictionary_storage_len, DictionaryConfig, KernelDictionary, Step,
+};
+use lpvid::kernel::dual_kernel;
+use lpvid::{PbsidDims, Samples, Slab};
+use nalgebra::DMatrix;
+
+use super::error::FitError;
+use super::realize::states_from_gkz;
+use super::ridge::{ridge_solve, NormalForm, RegressionInfo};
+use super::settings::PbsidOptions;
+use crate::kernel_sweep::{dot4, KernelSweep};
+
+/// Dual path (Algorithm 2): kernel Z^T Z + U^T U by Theorem 10, alpha from (19)-(21)
+/// (Tikhonov-regularised if asked), Gamma^p K^p Z by eq. (25), and the state candidates
+/// U^T Gamma K Z for windows 0..=N-p (the SVD uses the N-p regression windows).
+pub(crate) fn dual_states(
+    dims: &PbsidDims,
+    f: usize,
+    slab: &Slab<'_, f64>,
+    windows: usize,
+    opts: &PbsidOptions,
+) -> Result<(Vec<f64>, DMatrix<f64>, RegressionInfo), FitError> {
+    let (p, l) = (dims.p, dims.l);
+    let nb = windows;
+    if let Some(rows) = opts.kernel_rows {
+        return selected_rows_states(dims, f, slab, windows, rows, opts);
+    }
+    let g = dual_kernel_matrix(slab, p, nb, opts.feedthrough);
+    let y = DMatrix::from_fn(l, nb, |j, k| slab.y(k + p)[j]);
+    let (x, info) = ridge_solve(
+        &g,
+        &y.transpose(),
+        NormalForm::Dual,
+        y.norm_squared(),
+        nb as f64,
+        opts.reg,
+    )?;
+    let alpha = x.transpose(); // l x nb
+    let gkz = dual_gamma_kz_matrix(dims, f, slab, &alpha, nb + 1);
+    let (sv, x) = states_from_gkz(&gkz, nb)?;
+    Ok((sv, x, info))
+}
+
+/// Kernel form restricted to the rows D of Algorithm 3: min ||Y - alpha_D K_{D,:}||^2
+/// (+ Tikhonov with GCV, the same spectrum formula as the other forms), then eq. (25)
+/// with alpha zero outside D.
+pub(crate) fn selected_rows_states(
+    dims: &PbsidDims,
+    f: usize,
+    slab: &Slab<'_, f64>,
+    windows: usize,
+    max_rows: usize,
+    opts: &PbsidOptions,
+) -> Result<(Vec<f64>, DMatrix<f64>, RegressionInfo), FitError> {
+    let (p, l) = (dims.p, dims.l);
+    let nb = windows;
+    let (rows, _) = select_kernel_rows(dims, slab, max_rows, opts.kernel_tol, opts.feedthrough)?;
+    let m = rows.len();
+    let kd = DMatrix::from_fn(m, nb, |a, b| {
+        dual_kernel(slab, rows[a], slab, b, p, opts.feedthrough)
+    });
+    let y = DMatrix::from_fn(l, nb, |j, k| slab.y(k + p)[j]);
+    let s_ff = &kd * kd.transpose();
+    let s_fy = &kd * y.transpose();
+    let (x, info) = ridge_solve(
+        &s_ff,
+        &s_fy,
+        NormalForm::Primal,
+        y.norm_squared(),
+        nb as f64,
+        opts.reg,
+    )?;
+    let alpha_d = x.transpose(); // l x m
+    let mut alpha = DMatrix::zeros(l, nb);
+    for (a, &w) in rows.iter().enumerate() {
+        alpha.set_column(w, &alpha_d.column(a));
+    }
+    let gkz = dual_gamma_kz_matrix(dims, f, slab, &alpha, nb + 1);
+    let (sv, x) = states_from_gkz(&gkz, nb)?;
+    Ok((sv, x, info))
+}
+
+/// Algorithm 3 (kernel selection): the dictionary of windows the core admits by its
+/// linear-dependence test (at most `max_rows`, tolerance relative to the mean k(w, w)).
+pub fn select_kernel_rows(
+    dims: &PbsidDims,
+    slab: &Slab<'_, f64>,
+    max_rows: usize,
+    tol: f64,
+    feedthrough: bool,
+) -> Result<(Vec<usize>, String), FitError> {
+    let n = slab.len();
+    if max_rows == 0 {
+        return Err(FitError("--kernel-rows must be at least 1".into()));
+    }
+    let windows = n - dims.p;
+    let mean_diag = (0..windows)
+        .map(|k| dual_kernel(slab, k, slab, k, dims.p, feedthrough))
+        .sum::<f64>()
+        / windows as f64;
+    let config = DictionaryConfig::new(max_rows, tol * mean_diag, feedthrough);
+    let (r, l, s, p) = (dims.r, dims.l, dims.s, dims.p);
+    let mut dict = KernelDictionary::with_storage(
+        *dims,
+        config,
+        vec![0.0; lpvid::window_storage_len(r, l, s, p)],
+        vec![0.0; dictionary_storage_len(r, l, s, p, max_rows)],
+        vec![0.0; dictionary_gram_len(l, max_rows)],
+    )?;
+    let mut rows = Vec::new();
+    for k in 0..n {
+        let step = dict.update(slab.u(k), slab.y(k), &slab.mu(k)[1..])?;
+        if let Step::Admitted { window, .. } = step {
+            if (window as usize) < windows {
+                rows.push(window as usize);
+            }
+        }
+    }
+    let mut why = format!(
+        "{} of {windows} rows kept by the linear-dependence test (tolerance {tol:.1e} x mean k(w,w))",
+        rows.len()
+    );
+    if dict.rejected_full() > 0 {
+        why.push_str(&format!(
+            "; {} more independent rows did not fit in --kernel-rows {max_rows}",
+            dict.rejected_full()
+        ));
+    }
+    if let Some(period) = detect_period(slab, dims.s) {
+        why.push_str(&format!(
+            "; the scheduling is periodic with period {period} (section 6.1)"
+        ));
+    }
+    Ok((rows, why))
+}
+
+/// The smallest period P <= N/3 with p_{k+P} = p_k for every k (to 1e-9 relative), if any.
+pub fn detect_period(slab: &Slab<'_, f64>, s: usize) -> Option<usize> {
+    let n = slab.len();
+    if s == 0 {
+        return None;
+    }
+    let scale = (0..n)
+        .flat_map(|k| slab.mu(k)[1..].iter().map(|v| v.abs()))
+        .fold(0.0, f64::max)
+        .max(1e-300);
+    (1..=n / 3).find(|&per| {
+        (0..n - per).all(|k| {
+            slab.mu(k)[1..]
+                .iter()
+                .zip(&slab.mu(k + per)[1..])
+                .all(|(a, b)| (a - b).abs() <= 1e-9 * scale)
+        })
+    })
+}
+
+/// Eq. (25): row block i of Gamma^p K^p Z is alpha sum_{j >= i} (Z^{i,j})^T Z^{1,j}. Entry
+/// (a, b) of that kernel is Theorem 10 between the window starting at a - i + 1 and window
+/// b, summed over t0 >= i - 1; one backward pass over t gives it for every i at once.
+/// Columns are windows b = 0..cols (a window needs only its p samples, not a target).
+pub fn dual_gamma_kz_matrix(
+    dims: &PbsidDims,
+    f: usize,
+    slab: &Slab<'_, f64>,
+    alpha: &DMatrix<f64>,
+    cols: usize,
+) -> DMatrix<f64> {
+    let (p, l) = (dims.p, dims.l);
+    let nb = alpha.ncols();
+    // alpha row by row, contiguous
+    let alpha_rows: Vec<Vec<f64>> = (0..l)
+        .map(|j| alpha.row(j).iter().copied().collect())
+        .collect();
+    let mut out = DMatrix::zeros(f * l, cols);
+    let mut sweep = KernelSweep::new(slab, p);
+    // window starts s = -(p-1) .. nb-1; row block i = t + 1 pairs window a with s = a - t
+    let s0 = -(p as isize - 1);
+    for b in 0..cols {
+        sweep.window(b, s0, nb + p - 1, |t, ks| {
+            if t < f {
+                let k = &ks[p - 1 - t..p - 1 - t + nb];
+                for (j, ar) in alpha_rows.iter().enumerate() {
+                    out[(t * l + j, b)] = dot4(ar, k);
+                }
+            }
+        });
+    }
+    out
+}
+
+/// The dual kernel of (19), [Z^T Z + U^T U] over windows 0..nb (the U^T U term only with
+/// feedthrough), by Theorem 10 for all pairs ([`KernelSweep`]).
+pub fn dual_kernel_matrix(
+    slab: &Slab<'_, f64>,
+    p: usize,
+    nb: usize,
+    feedthrough: bool,
+) -> DMatrix<f64> {
+    let mut g = DMatrix::<f64>::zeros(nb, nb);
+    let mut sweep = KernelSweep::new(slab, p);
+    for b in 0..nb {
+        sweep.window(b, 0, b + 1, |t, ks| {
+            if t == 0 {
+                g.view_mut((0, b), (b + 1, 1)).copy_from_slice(ks);
+            }
+        });
+        if feedthrough {
+            let ub = slab.u(b + p);
+            for a in 0..=b {
+                g[(a, b)] += lpvid::real::dot(slab.u(a + p), ub);
+            }
+        }
+    }
+    for b in 0..nb {
+        for a in 0..b {
+            g[(b, a)] = g[(a, b)];
+        }
+    }
+    g
+}

@@ -1,0 +1,278 @@
+//! LPV-PBSID_opt (kernel paper, `papers/lpv-pbsid-kernel-automatica2009.md`, Algorithms 1
+//! and 2, sections 4-6; the sparse paper, `papers/lpv-pbsid-sparse-bpdn-hinf-observer.md`,
+//! section 4.2 for the sparse forms): regression (13) from the core's statistics (primal)
+//! or in the dual/kernel form (19)-(22) when the regressor outgrows the data,
+//! Gamma^p K^p Z by eq. (14) or eq. (25), SVD (15), state (16), then the system matrices by
+//! least squares (section 4.3).
+//!
+//! Signals are scaled internally (inputs and outputs by their standard deviation, each
+//! scheduling signal centred and scaled — an exact affine re-parametrisation of mu) and the
+//! model is returned in original units.
+//!
+//! Where each step lives:
+//! - [`settings`]: what a caller chooses ([`PbsidOptions`], [`Reg`], [`Order`], [`Solver`],
+//!   [`BpdnScore`]) and what a fit returns ([`PbsidFit`]);
+//! - [`scaling`]: the channel scaling, the scaled sample rows, the statistics' scale vector
+//!   and the way back to original units ([`unscale`]);
+//! - [`ridge`]: the ridge step shared by every form of (13), with GCV (section 5.3);
+//! - [`primal`]: regression (13) from the statistics (Algorithm 1);
+//! - [`dual`]: the kernel form (19)-(22), eq. (25) and the row selection of Algorithm 3
+//!   (section 6);
+//! - [`bpdn`] and [`sparse`]: BPDN (33) with rule (34) or Algorithm 1 of the sparse paper;
+//! - [`order`]: the order from the singular values of Gamma K Z;
+//! - [`realize`]: eq. (14), the SVD (15), the states (16) and the system matrices
+//!   (section 4.3);
+//! - [`error`]: why a fit could not be made ([`FitError`]).
+//!
+//! This file holds the three entry points: [`fit`], [`fit_with_validation`] and
+//! [`fit_from_stats`].
+
+pub mod bpdn;
+pub mod dual;
+pub mod error;
+pub mod order;
+pub mod primal;
+pub mod realize;
+pub mod ridge;
+pub mod scaling;
+pub mod settings;
+pub mod sparse;
+
+use lpvid::{stat_vector_len, Gram, PbsidDims, Slab, StatsLayout};
+
+use crate::lpvss::Signals;
+
+pub use dual::{detect_period, dual_gamma_kz_matrix, dual_kernel_matrix, select_kernel_rows};
+pub use error::FitError;
+pub use order::{select_order, FLOOR_FACTOR};
+pub use realize::{gamma_k, realize_from_states, realize_from_stats};
+pub use scaling::{unscale, Scaling};
+pub use settings::{BpdnScore, Order, PbsidFit, PbsidOptions, Reg, Solver, DEFAULT_SCHED_WEIGHT};
+
+use order::choose_order;
+use primal::{dense, primal_regression_svd};
+use scaling::{scaled_rows, stat_scale_vector, ChannelSums};
+
+/// Check the options against the data size; returns the future window.
+fn check_options(dims: &PbsidDims, windows: usize, opts: &PbsidOptions) -> Result<usize, FitError> {
+    if !(opts.sched_weight > 0.0 && opts.sched_weight.is_finite()) {
+        return Err(FitError(format!(
+            "scheduling weight must be positive, got {}",
+            opts.sched_weight
+        )));
+    }
+    if windows < 2 {
+        return Err(FitError(format!(
+            "{windows} regression windows: a past window of {} needs more samples",
+            dims.p
+        )));
+    }
+    future(dims, opts)
+}
+
+/// The future window f (default p), checked.
+fn future(dims: &PbsidDims, opts: &PbsidOptions) -> Result<usize, FitError> {
+    let f = opts.future.unwrap_or(dims.p);
+    if f == 0 || f > dims.p {
+        return Err(FitError(format!(
+            "future window {f} must be between 1 and the past window {}",
+            dims.p
+        )));
+    }
+    Ok(f)
+}
+
+/// Identify an LPV state-space model with LPV-PBSID_opt from data (Algorithm 1 with the
+/// primal statistics, or Algorithm 2 in the kernel form, whichever is cheaper).
+pub fn fit(sig: &Signals, opts: &PbsidOptions) -> Result<PbsidFit, FitError> {
+    fit_with_validation(sig, None, opts)
+}
+
+/// As [`fit`]; `val` is the validation data BPDN-SV scores its path on. Without it,
+/// `BpdnScore::Simulation` (the default) scores on the whole of `sig` with an AIC order
+/// penalty and `BpdnScore::OneStep` on the last quarter of `sig`, as the sparse paper does.
+/// Other regularisations ignore it.
+pub fn fit_with_validation(
+    sig: &Signals,
+    val: Option<&Signals>,
+    opts: &PbsidOptions,
+) -> Result<PbsidFit, FitError> {
+    let (n_samples, r, l, s) = (sig.len(), sig.u.ncols(), sig.y.ncols(), sig.p.ncols());
+    let dims = PbsidDims::new(r, l, s, opts.past)?;
+    let p = dims.p;
+    let m = dims.m();
+    let min_samples = p + 3;
+    if n_samples < min_samples {
+        return Err(FitError(format!(
+            "{n_samples} samples, but a past window of {p} needs at least {min_samples} (and many more for a useful fit)"
+        )));
+    }
+    let windows = n_samples - p;
+    let q = dims.q()?;
+    let r_ft = if opts.feedthrough { r } else { 0 };
+    let f = check_options(&dims, windows, opts)?;
+    let scaling = ChannelSums::from_signals(sig, p).scaling(opts.sched_weight)?;
+    let rows = scaled_rows(sig, &scaling);
+    let slab = Slab::new(&rows, r, l, m)?;
+
+    // The cheaper exact form: operation counts of building + decomposing each.
+    let qf = (q + r_ft) as f64;
+    let nb = windows as f64;
+    let primal_cost = nb * qf * qf / 2.0 + 10.0 * qf * qf * qf;
+    let dual_cost = nb * nb * (p * p) as f64 + 10.0 * nb * nb * nb;
+    let (solver, solver_reason) = match opts.solver {
+        _ if opts.kernel_rows.is_some() => (
+            Solver::Dual,
+            "kernel form with row selection (Algorithm 3)".to_string(),
+        ),
+        Solver::Primal => (Solver::Primal, "primal form requested".to_string()),
+        Solver::Dual => (Solver::Dual, "kernel form requested".to_string()),
+        Solver::Auto => {
+            if primal_cost <= dual_cost {
+                (
+                    Solver::Primal,
+                    format!("primal: q = {} regressors for {windows} windows", q + r_ft),
+                )
+            } else {
+                (
+                    Solver::Dual,
+                    format!(
+                        "kernel: q = {} regressors exceed what {windows} windows make cheaper in the dual",
+                        q + r_ft
+                    ),
+                )
+            }
+        }
+    };
+    if solver == Solver::Primal && q > 20_000 {
+        return Err(FitError(format!(
+            "the primal form needs a {q} x {q} Gram matrix; use the kernel form (--kernel) or a smaller past window"
+        )));
+    }
+    if solver == Solver::Dual && windows > 20_000 {
+        return Err(FitError(format!(
+            "the kernel form needs a {windows} x {windows} kernel matrix; use the primal form or fewer samples"
+        )));
+    }
+
+    // Candidate states for windows 0..=N-p (the last one only as the successor state).
+    let sparse = matches!(opts.reg, Reg::BpdnAic | Reg::BpdnSv);
+    let val_rows = match (opts.reg, val) {
+        (Reg::BpdnSv, Some(v)) => {
+            if v.u.ncols() != r || v.y.ncols() != l || v.p.ncols() != s {
+                return Err(FitError(
+                    "the validation data have other signals than the training data".into(),
+                ));
+            }
+            Some(scaled_rows(v, &scaling))
+        }
+        _ => None,
+    };
+    let mut solver_reason = solver_reason;
+    let mut sparse_order = None;
+    let (sv, x, reg) = match solver {
+        _ if sparse => {
+            let (sv, x, reg, why, order) =
+                sparse::bpdn_states(&dims, f, &slab, windows, val_rows.as_deref(), opts)?;
+            solver_reason = format!("sparse form with explicit regressors ({why})");
+            sparse_order = order;
+            (sv, x, reg)
+        }
+        Solver::Dual => dual::dual_states(&dims, f, &slab, windows, opts)?,
+        _ => primal::primal_states(&dims, f, &slab, windows, opts)?,
+    };
+    let (order, order_reason) = match sparse_order {
+        Some(chosen) => chosen,
+        None => choose_order(&sv, windows, opts)?,
+    };
+    let states = x.rows(0, order).into_owned();
+    let scaled = realize_from_states(&dims, &slab, &states, opts.feedthrough)?;
+    let mut model = unscale(&scaled, &scaling);
+    let mut refinement = None;
+    if opts.refine {
+        let r = crate::refine::refine_output_error(&model, sig, opts.feedthrough, 50);
+        if r.mse_after < r.mse_before {
+            model = r.model;
+        }
+        refinement = Some((r.mse_before, r.mse_after.min(r.mse_before), r.iterations));
+    }
+    Ok(PbsidFit {
+        model,
+        singular_values: sv,
+        order,
+        order_reason,
+        lambda: reg.lambda_rel(),
+        dof: reg.dof,
+        solver,
+        solver_reason,
+        q,
+        windows,
+        scaling,
+        states: Some(states),
+        refinement,
+    })
+}
+
+/// Identify from statistics alone (a device's pull, or merged experiments): the Gram of the
+/// `Extended` statistic vectors of raw (unscaled) samples. Scaling is applied to the
+/// statistics (D G D), regression (13) and the SVD are the primal ones of [`fit`], and the
+/// realization's least squares use moments that are linear maps of the statistics, so the
+/// model equals the file-based primal fit of the same samples up to rounding.
+pub fn fit_from_stats<S: AsRef<[f64]> + AsMut<[f64]>>(
+    gram: &Gram<f64, S>,
+    dims: &PbsidDims,
+    opts: &PbsidOptions,
+) -> Result<PbsidFit, FitError> {
+    let layout = StatsLayout::Extended;
+    let len = stat_vector_len(dims, layout)?;
+    if gram.dim() != len {
+        return Err(FitError(format!(
+            "statistics of dimension {} do not match the extended layout for r={}, l={}, s={}, p={} (expected {len})",
+            gram.dim(),
+            dims.r,
+            dims.l,
+            dims.s,
+            dims.p
+        )));
+    }
+    let sums = ChannelSums::from_stats(gram, dims, layout)?;
+    let windows = sums.count.round() as usize;
+    if opts.past != dims.p {
+        return Err(FitError(format!(
+            "the statistics were accumulated with past window {}, not {}",
+            dims.p, opts.past
+        )));
+    }
+    let f = check_options(dims, windows, opts)?;
+    let scaling = sums.scaling(opts.sched_weight)?;
+    let dvec = stat_scale_vector(dims, layout, &scaling)?;
+    let mut g = dense(gram, len);
+    for i in 0..len {
+        for j in 0..len {
+            g[(i, j)] *= dvec[i] * dvec[j];
+        }
+    }
+    let d = dims.stat_len()?;
+    let plain = g.view((0, 0), (d, d)).into_owned();
+    let (reg, sv, t) = primal_regression_svd(dims, f, &plain, windows, opts)?;
+    let (order, order_reason) = choose_order(&sv, windows, opts)?;
+    let t = t.rows(0, order).into_owned();
+    let gv = g.view((0, 0), (d * dims.m(), d * dims.m())).into_owned();
+    let scaled = realize_from_stats(dims, &t, &gv, opts.feedthrough)?;
+    let model = unscale(&scaled, &scaling);
+    Ok(PbsidFit {
+        model,
+        singular_values: sv,
+        order,
+        order_reason,
+        lambda: reg.lambda_rel(),
+        dof: reg.dof,
+        solver: Solver::Primal,
+        solver_reason: "from statistics (primal form)".into(),
+        q: dims.q()?,
+        windows,
+        scaling,
+        states: None,
+        refinement: None,
+    })
+}

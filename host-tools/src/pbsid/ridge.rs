@@ -1,0 +1,240 @@
+//! The ridge step of regression (13) shared by the primal, the dual (kernel paper,
+//! `papers/lpv-pbsid-kernel-automatica2009.md`, eq. (19)-(22)) and the selected-rows forms:
+//! the minimum-norm solution (eq. (18)) or Tikhonov with the parameter chosen by generalised
+//! cross-validation (section 5.3), computed on one [`Spectrum`] so that GCV is the same
+//! number whichever form was solved.
+
+use nalgebra::DMatrix;
+
+use super::error::FitError;
+use super::settings::Reg;
+use crate::linalg::{sym_eig, Tridiagonal};
+
+/// Spectrum of a ridge problem in the form shared by the primal and the dual: eigenvalues
+/// lambda_i of the Gram (equal nonzero eigenvalues either way), the energy c_i of the
+/// targets along each (dual coordinates), the total target energy and the row count. GCV
+/// computed from this is the same number whichever form was solved.
+pub(crate) struct Spectrum {
+    pub(crate) vals: Vec<f64>,
+    pub(crate) energy: Vec<f64>,
+    pub(crate) total: f64,
+    pub(crate) rows: f64,
+}
+
+impl Spectrum {
+    /// Residual sum of squares and effective degrees of freedom at ridge parameter `lam`
+    /// (lam = 0: minimum norm with eigenvalues below `cut` dropped).
+    pub(crate) fn rss_dof(&self, lam: f64, cut: f64) -> (f64, f64) {
+        let (rss, deficit) = self.rss_deficit(lam, cut);
+        (rss, self.rows - deficit)
+    }
+
+    /// RSS and rows - dof, each computed without cancellation: the residual factor of
+    /// component i is lam / (lambda_i + lam), and dropped components count fully.
+    fn rss_deficit(&self, lam: f64, cut: f64) -> (f64, f64) {
+        // energy outside the Gram's range (zero in the dual); clamp the cancellation error
+        let mut rss = (self.total - self.energy.iter().sum::<f64>()).max(0.0);
+        let mut deficit = self.rows;
+        for (&v, &c) in self.vals.iter().zip(&self.energy) {
+            if v <= cut {
+                rss += c;
+                continue;
+            }
+            let g = residual_factor(v, lam);
+            rss += c * g * g;
+            deficit -= 1.0 - g;
+        }
+        (rss.max(0.0), deficit.max(0.0))
+    }
+
+    /// GCV(lam) = rows * RSS / (rows - dof)^2.
+    fn gcv(&self, lam: f64, cut: f64) -> f64 {
+        let (rss, deficit) = self.rss_deficit(lam, cut);
+        if deficit <= 0.0 {
+            return f64::INFINITY;
+        }
+        self.rows * rss / (deficit * deficit)
+    }
+
+    /// Ridge parameter minimising GCV (see [`gcv_minimiser`]).
+    fn gcv_lambda(&self, cut: f64) -> f64 {
+        let vmax = self.vals.iter().copied().fold(0.0, f64::max);
+        gcv_minimiser(vmax, |lam| self.gcv(lam, cut))
+    }
+}
+
+/// Ridge parameter minimising `gcv(lam)`: a log grid over 14 decades below the largest
+/// eigenvalue `vmax`, refined by golden-section search in log(lam).
+pub(crate) fn gcv_minimiser(vmax: f64, gcv: impl Fn(f64) -> f64) -> f64 {
+    let vmax = vmax.max(1e-300);
+    let f = |e: f64| gcv(vmax * 10f64.powf(e));
+    let (lo, hi, step) = (-14.0, 1.0, 0.25);
+    let mut best = (lo, f(lo));
+    let mut e = lo;
+    while e <= hi {
+        let g = f(e);
+        if g < best.1 {
+            best = (e, g);
+        }
+        e += step;
+    }
+    let (mut a, mut b) = (best.0 - step, best.0 + step);
+    let phi = 0.5 * (5f64.sqrt() - 1.0);
+    let mut c = b - phi * (b - a);
+    let mut d = a + phi * (b - a);
+    let (mut fc, mut fd) = (f(c), f(d));
+    for _ in 0..40 {
+        if fc < fd {
+            b = d;
+            d = c;
+            fd = fc;
+            c = b - phi * (b - a);
+            fc = f(c);
+        } else {
+            a = c;
+            c = d;
+            fc = fd;
+            d = a + phi * (b - a);
+            fd = f(d);
+        }
+    }
+    let e = 0.5 * (a + b);
+    let e = if f(e) <= best.1 { e } else { best.0 };
+    vmax * 10f64.powf(e)
+}
+
+/// Relative eigenvalue cut-off defining the numerical rank of a Gram matrix.
+pub(crate) const RANK_TOL: f64 = 1e-11;
+
+/// Pick lambda for the chosen regularisation; returns (lambda, dof, cut).
+pub(crate) fn choose_lambda(reg: Reg, spec: &Spectrum) -> (f64, f64, f64) {
+    let vmax = spec.vals.iter().copied().fold(0.0, f64::max);
+    let cut = vmax * RANK_TOL;
+    let lam = match reg {
+        Reg::None | Reg::BpdnAic | Reg::BpdnSv => 0.0,
+        Reg::TikhonovGcv => spec.gcv_lambda(cut),
+        Reg::Tikhonov(rel) => rel * vmax,
+    };
+    let (_, dof) = spec.rss_dof(lam, cut);
+    (lam, dof, cut)
+}
+
+/// Filter factor applied to component i: 1/(v + lam), or 0 below the rank cut-off.
+pub(crate) fn filter(v: f64, lam: f64, cut: f64) -> f64 {
+    if v <= cut {
+        0.0
+    } else {
+        (1.0 - residual_factor(v, lam)) / v
+    }
+}
+
+/// 1 - phi_i, the part of component i the regularised fit leaves in the residual.
+pub(crate) fn residual_factor(v: f64, lam: f64) -> f64 {
+    lam / (v + lam)
+}
+
+/// Which normal equations a ridge step solves: primal (A = Phi Phi^T, B = Phi Y^T) or dual
+/// (A = Phi^T Phi, B = Y^T). The target energy along eigenvector i of A is (V^T B)_i^2 /
+/// lambda_i in the primal and (V^T B)_i^2 in the dual.
+#[derive(Clone, Copy, PartialEq)]
+pub(crate) enum NormalForm {
+    Primal,
+    Dual,
+}
+
+/// Below this fraction of the largest eigenvalue a Tikhonov parameter is solved through the
+/// eigendecomposition (with the rank cut-off) rather than the shifted tridiagonal system.
+pub(crate) const SHIFTED_SOLVE_MIN: f64 = 1e-10;
+
+/// The ridge step shared by every form of regression (13): X = (A + lam I)^{-1} B, lam
+/// chosen by `reg` on the common [`Spectrum`] (so GCV is the same number in the primal and
+/// the dual), lam = 0 the minimum-norm solution (eq. (18)). Tikhonov reduces A to
+/// tridiagonal form once: eigenvalues and target energies without eigenvectors, then one
+/// tridiagonal solve, O(n^2) after the reduction instead of a full eigendecomposition.
+pub(crate) fn ridge_solve(
+    a: &DMatrix<f64>,
+    b: &DMatrix<f64>,
+    form: NormalForm,
+    total: f64,
+    rows: f64,
+    reg: Reg,
+) -> Result<(DMatrix<f64>, RegressionInfo), FitError> {
+    let spectrum = |vals: &[f64], proj: &DMatrix<f64>| Spectrum {
+        energy: vals
+            .iter()
+            .enumerate()
+            .map(|(i, &v)| {
+                let e = proj.row(i).norm_squared();
+                match form {
+                    NormalForm::Dual => e,
+                    NormalForm::Primal if v > 0.0 => e / v,
+                    NormalForm::Primal => 0.0,
+                }
+            })
+            .collect(),
+        vals: vals.to_vec(),
+        total,
+        rows,
+    };
+    let tikhonov = matches!(reg, Reg::TikhonovGcv | Reg::Tikhonov(_));
+    if tikhonov {
+        let tri = Tridiagonal::new(a);
+        let bt = tri.to_tridiagonal(b);
+        let (lam, dof, vmax) = match form {
+            NormalForm::Primal => {
+                // the primal residual needs the energies b_i^2 / lambda_i: eigen-coordinates
+                let (vals, proj) = tri.eigen_projection(&bt)?;
+                let (lam, dof, _) = choose_lambda(reg, &spectrum(&vals, &proj));
+                (lam, dof, vals.first().copied().unwrap_or(0.0).max(0.0))
+            }
+            NormalForm::Dual => {
+                // RSS = lam^2 ||(T + lam I)^{-1} Q^T y||^2 and rows - dof =
+                // lam tr((T + lam I)^{-1}): O(n) per lambda, no eigenvalues needed
+                let vmax = tri.largest_eigenvalue().max(0.0);
+                let curve = |lam: f64| {
+                    tri.shifted_norm_trace(lam, &bt)
+                        .map(|(xx, tr)| (lam * lam * xx, lam * tr))
+                };
+                let lam = match reg {
+                    Reg::Tikhonov(rel) => rel * vmax,
+                    _ => gcv_minimiser(vmax, |lam| match curve(lam) {
+                        Some((rss, deficit)) if deficit > 0.0 => rows * rss / (deficit * deficit),
+                        _ => f64::INFINITY,
+                    }),
+                };
+                let dof = curve(lam).map_or(f64::NAN, |(_, deficit)| rows - deficit);
+                (lam, dof, vmax)
+            }
+        };
+        if lam > SHIFTED_SOLVE_MIN * vmax && dof.is_finite() {
+            if let Some(w) = tri.solve_shifted(lam, &bt) {
+                let lambda = Some((lam, vmax));
+                return Ok((tri.from_tridiagonal(&w), RegressionInfo { lambda, dof }));
+            }
+        }
+    }
+    let (vals, vecs) = sym_eig(a)?;
+    let mut proj = vecs.transpose() * b;
+    let (lam, dof, cut) = choose_lambda(reg, &spectrum(&vals, &proj));
+    for (i, &v) in vals.iter().enumerate() {
+        proj.row_mut(i).scale_mut(filter(v, lam, cut));
+    }
+    let vmax = vals.first().copied().unwrap_or(0.0);
+    let lambda = tikhonov.then_some((lam, vmax));
+    Ok((vecs * proj, RegressionInfo { lambda, dof }))
+}
+
+/// Outcome of the regularised regression.
+pub(crate) struct RegressionInfo {
+    /// (lambda, largest Gram eigenvalue), None for the minimum-norm solution.
+    pub(crate) lambda: Option<(f64, f64)>,
+    /// Effective number of parameters per output.
+    pub(crate) dof: f64,
+}
+
+impl RegressionInfo {
+    pub(crate) fn lambda_rel(&self) -> Option<f64> {
+        self.lambda
+            .map(|(lam, vmax)| if vmax > 0.0 { lam / vmax } else { 0.0 })
+    }
+}
