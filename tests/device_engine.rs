@@ -68,6 +68,17 @@ fn handle(dev: &mut Dev, bytes: &[u8]) -> Option<Seen> {
     seen
 }
 
+/// A `Samples` frame of 10 samples from stream index `first`.
+fn samples_frame(seq: u32, first: usize, out: &mut [u8; 600]) -> usize {
+    let mut vb = [0u8; 480];
+    let m = samples_bytes(first, 10, &mut vb);
+    let msg = Message::Samples {
+        first: first as u32,
+        values: &vb[..m],
+    };
+    frame(seq, &msg, out)
+}
+
 fn samples_bytes(first: usize, n: usize, out: &mut [u8; 480]) -> usize {
     let mut vals = [0f32; 120];
     for i in 0..n {
@@ -83,7 +94,6 @@ fn samples_bytes(first: usize, n: usize, out: &mut [u8; 480]) -> usize {
 fn exactly_once_and_zero_allocations() {
     let mut dev = Box::new(Dev::new());
     let mut buf = [0u8; 600];
-    let mut vb = [0u8; 480];
     let cfg = Config {
         r: 1,
         l: 1,
@@ -102,15 +112,7 @@ fn exactly_once_and_zero_allocations() {
     // 40 samples in 4 frames
     let mut seq = 9;
     for b in 0..4 {
-        let m = samples_bytes(10 * b, 10, &mut vb);
-        let n = frame(
-            seq,
-            &Message::Samples {
-                first: (10 * b) as u32,
-                values: &vb[..m],
-            },
-            &mut buf,
-        );
+        let n = samples_frame(seq, 10 * b, &mut buf);
         let s = handle(&mut dev, &buf[..n]).unwrap();
         assert_eq!(s.next, Some(10 * (b as u32 + 1)));
         // the same frame again (a retransmission): answered from the cache, not applied
@@ -121,29 +123,13 @@ fn exactly_once_and_zero_allocations() {
     assert_eq!(dev.status().next_sample, 40);
     assert_eq!(dev.status().windows, 37);
     // the last batch as a new request: duplicates acknowledged, not re-applied
-    let m = samples_bytes(30, 10, &mut vb);
-    let n = frame(
-        seq,
-        &Message::Samples {
-            first: 30,
-            values: &vb[..m],
-        },
-        &mut buf,
-    );
+    let n = samples_frame(seq, 30, &mut buf);
     seq += 1;
     let s = handle(&mut dev, &buf[..n]).unwrap();
     assert_eq!((s.next, s.windows), (Some(40), Some(37)));
     assert_eq!(dev.status().duplicate_samples, 10);
     // a gap is an error, not hidden
-    let m = samples_bytes(50, 10, &mut vb);
-    let n = frame(
-        seq,
-        &Message::Samples {
-            first: 50,
-            values: &vb[..m],
-        },
-        &mut buf,
-    );
+    let n = samples_frame(seq, 50, &mut buf);
     seq += 1;
     assert_eq!(
         handle(&mut dev, &buf[..n]).unwrap().code,
@@ -152,15 +138,7 @@ fn exactly_once_and_zero_allocations() {
     assert_eq!(dev.status().next_sample, 40);
 
     // corrupted, truncated and garbage frames: NAKs with reasons, nothing changes
-    let m = samples_bytes(40, 10, &mut vb);
-    let n = frame(
-        seq,
-        &Message::Samples {
-            first: 40,
-            values: &vb[..m],
-        },
-        &mut buf,
-    );
+    let n = samples_frame(seq, 40, &mut buf);
     let mut bad = buf;
     bad[n / 2] ^= 0x10;
     let s = handle(&mut dev, &bad[..n]).unwrap();
@@ -225,15 +203,7 @@ fn exactly_once_and_zero_allocations() {
     seq += 1;
     assert!(handle(&mut dev, &buf[..n]).unwrap().ok);
     assert!(dev.status().model_loaded);
-    let m = samples_bytes(50, 10, &mut vb);
-    let n = frame(
-        seq,
-        &Message::Samples {
-            first: 50,
-            values: &vb[..m],
-        },
-        &mut buf,
-    );
+    let n = samples_frame(seq, 50, &mut buf);
     seq += 1;
     assert_eq!(handle(&mut dev, &buf[..n]).unwrap().next, Some(60));
     let n = frame(seq, &Message::GetPrediction, &mut buf);
