@@ -36,6 +36,7 @@ pub mod pipeline;
 pub mod record;
 pub mod refine;
 pub mod simulate;
+pub mod statistics;
 pub mod systems;
 
 pub use error::Error;
