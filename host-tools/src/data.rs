@@ -79,17 +79,218 @@ fn parse_number(text: &str) -> Result<f64, String> {
         Ok(_) => Err(format!(
             "\"{text}\" is not finite (NaN and infinite values are not allowed)"
         )),
+        Err(_) if text.contains([';', '\t', ',']) => Err(format!(
+            "\"{text}\" is not a number: the separator or the decimal point looks wrong (lpvid \
+             reads ',' as the separator and '.' as the decimal point)"
+        )),
         Err(_) => Err(format!("\"{text}\" is not a number")),
     }
+}
+
+/// Longest line a data or model file may have (a file that never ends, such as
+/// `/dev/zero`, is stopped here instead of filling the memory).
+pub const MAX_LINE_BYTES: usize = 1 << 20;
+
+/// Most bytes read from a pipe (a regular file's size is known; a pipe could run forever).
+pub const MAX_PIPE_BYTES: u64 = 1 << 30;
+
+/// The separator a one-field header uses instead of a comma (`;`, a tab), if it looks so.
+fn foreign_separator(header: &csv::StringRecord) -> Option<&'static str> {
+    if header.len() != 1 {
+        return None;
+    }
+    let h = &header[0];
+    if h.contains(';') {
+        Some("';'")
+    } else if h.contains('\t') {
+        Some("a tab")
+    } else if h.contains('|') {
+        Some("'|'")
+    } else if h.trim().contains(' ') && h.split_whitespace().count() > 1 {
+        Some("spaces")
+    } else {
+        None
+    }
+}
+
+/// The signal columns (`u`, `y`, `p` followed by a number without a leading zero) must be
+/// numbered from 1 without gaps: `u2` without `u1`, or `u1,u3`, would otherwise silently
+/// drop a signal. Returns the offending column and the message.
+fn check_numbering(names: &[String]) -> Result<(), (String, String)> {
+    for (prefix, what) in [('u', "input"), ('y', "output"), ('p', "scheduling signal")] {
+        let mut nums: Vec<(u64, &str)> = names
+            .iter()
+            .filter_map(|n| {
+                let rest = n.strip_prefix(prefix)?;
+                if rest.starts_with('0') || !rest.bytes().all(|b| b.is_ascii_digit()) {
+                    return None;
+                }
+                rest.parse::<u64>().ok().map(|k| (k, n.as_str()))
+            })
+            .collect();
+        nums.sort_unstable();
+        for (i, &(k, name)) in nums.iter().enumerate() {
+            let want = i as u64 + 1;
+            if k != want {
+                let msg = if i == 0 {
+                    format!(
+                        "column '{name}': {what} columns are numbered from {prefix}1 without gaps, \
+                         but there is no {prefix}1 (rename the columns {prefix}1, {prefix}2, ...; \
+                         a logged signal that is not an {what} needs another name)"
+                    )
+                } else {
+                    format!(
+                        "column '{name}': {what} columns are numbered from {prefix}1 without gaps, \
+                         but {prefix}{want} is missing (found {}; rename them {prefix}1..{prefix}{}, \
+                         a logged signal needs another name)",
+                        nums.iter().map(|n| n.1).collect::<Vec<_>>().join(","),
+                        nums.len()
+                    )
+                };
+                return Err((name.to_owned(), msg));
+            }
+        }
+    }
+    Ok(())
+}
+
+/// The first whitespace-only line after `header_line` that has a non-blank line after it
+/// (1-based), as [`LineCounter`] counts lines.
+fn inner_blank_line(body: &[u8], header_line: usize) -> Option<usize> {
+    let (mut line, mut start) = (1usize, 0usize);
+    let mut first_blank: Option<usize> = None;
+    loop {
+        let mut j = start;
+        while j < body.len() && body[j] != b'\n' && body[j] != b'\r' {
+            j += 1;
+        }
+        let at_end = j >= body.len();
+        let blank = body[start..j].iter().all(u8::is_ascii_whitespace);
+        if line > header_line {
+            if !blank {
+                if first_blank.is_some() {
+                    return first_blank;
+                }
+            } else if !at_end && first_blank.is_none() {
+                first_blank = Some(line);
+            }
+        }
+        if at_end {
+            return None;
+        }
+        start = if body[j] == b'\r' && body.get(j + 1) == Some(&b'\n') {
+            j + 2
+        } else {
+            j + 1
+        };
+        line += 1;
+    }
+}
+
+/// Read `reader` to its end, stopping with an error naming the line when a line is longer
+/// than [`MAX_LINE_BYTES`] or the whole is longer than `limit` bytes.
+fn read_bounded(source: &str, reader: &mut dyn Read, limit: u64) -> Result<Vec<u8>, DataError> {
+    let mut bytes = Vec::new();
+    let mut buf = vec![0u8; 64 * 1024];
+    let (mut line, mut line_len) = (1usize, 0usize);
+    loop {
+        let n = match reader.read(&mut buf) {
+            Ok(0) => break,
+            Ok(n) => n,
+            Err(e) if e.kind() == std::io::ErrorKind::Interrupted => continue,
+            Err(e) => {
+                return Err(DataError::new(
+                    source,
+                    None,
+                    None,
+                    format!("cannot read: {e}"),
+                ))
+            }
+        };
+        for &b in &buf[..n] {
+            if b == b'\n' {
+                line += 1;
+                line_len = 0;
+            } else {
+                line_len += 1;
+                if line_len > MAX_LINE_BYTES {
+                    return Err(DataError::new(
+                        source,
+                        Some(line),
+                        None,
+                        format!(
+                            "line longer than {} MiB: not a data file (a binary file or a \
+                             device that never ends?)",
+                            MAX_LINE_BYTES >> 20
+                        ),
+                    ));
+                }
+            }
+        }
+        bytes.extend_from_slice(&buf[..n]);
+        if bytes.len() as u64 > limit {
+            return Err(DataError::new(
+                source,
+                None,
+                None,
+                format!(
+                    "more than {} MiB from a pipe: stopped reading (write the data to a file)",
+                    limit >> 20
+                ),
+            ));
+        }
+    }
+    Ok(bytes)
+}
+
+/// Read an input file whole, refusing what would never end: a regular file is read (lines
+/// at most [`MAX_LINE_BYTES`]), a pipe (FIFO, `/dev/stdin` from a pipe) at most
+/// [`MAX_PIPE_BYTES`]; a directory, a character or block device (`/dev/zero`,
+/// `/dev/urandom`) or a socket is refused before reading.
+pub fn read_input(path: &Path) -> Result<Vec<u8>, DataError> {
+    use std::os::unix::fs::FileTypeExt;
+    let source = path.display().to_string();
+    let meta = fs::metadata(path)
+        .map_err(|e| DataError::new(&source, None, None, format!("cannot open: {e}")))?;
+    let ft = meta.file_type();
+    let refuse = |what: &str| {
+        Err(DataError::new(
+            &source,
+            None,
+            None,
+            format!(
+                "is {what}, not a regular file: lpvid reads inputs from regular files or pipes"
+            ),
+        ))
+    };
+    if ft.is_dir() {
+        return refuse("a directory");
+    }
+    if ft.is_char_device() {
+        return refuse("a character device (it may never end)");
+    }
+    if ft.is_block_device() {
+        return refuse("a block device");
+    }
+    if ft.is_socket() {
+        return refuse("a socket");
+    }
+    let limit = if ft.is_fifo() {
+        MAX_PIPE_BYTES
+    } else {
+        u64::MAX
+    };
+    let mut file = fs::File::open(path)
+        .map_err(|e| DataError::new(&source, None, None, format!("cannot open: {e}")))?;
+    read_bounded(&source, &mut file, limit)
 }
 
 impl Dataset {
     /// Read and check a CSV data file; errors name the file as `path` displays.
     pub fn read_csv(path: &Path) -> Result<Dataset, DataError> {
         let source = path.display().to_string();
-        let file = fs::File::open(path)
-            .map_err(|e| DataError::new(&source, None, None, format!("cannot open: {e}")))?;
-        Dataset::parse(&source, std::io::BufReader::new(file))
+        let bytes = read_input(path)?;
+        Dataset::parse(&source, &bytes[..])
     }
 
     /// Parse CSV text from `reader`; `source` is the file name used in errors.
@@ -99,10 +300,7 @@ impl Dataset {
         };
         // Read it all: line numbers are counted from byte offsets (the csv crate's own line
         // count skips blank lines).
-        let mut bytes = Vec::new();
-        reader
-            .read_to_end(&mut bytes)
-            .map_err(|e| err(None, None, format!("cannot read: {e}")))?;
+        let bytes = read_bounded(source, &mut reader, u64::MAX)?;
         let body = bytes.strip_prefix(b"\xef\xbb\xbf").unwrap_or(&bytes);
         let lines = std::cell::RefCell::new(LineCounter::new(body));
         let line_of = |pos: Option<&csv::Position>| {
@@ -139,6 +337,18 @@ impl Dataset {
             }
         };
         let header_line = line_of(header.position()).unwrap_or(1);
+        if let Some(sep) = foreign_separator(&header) {
+            return Err(err(
+                Some(header_line),
+                None,
+                format!(
+                    "the header \"{}\" is one field: the separator looks like {sep}, but lpvid \
+                     reads comma-separated files (separator ',', decimal point '.', e.g. \
+                     u1,y1,p1 and 0.5,-1.25,0.3)",
+                    header.iter().collect::<Vec<_>>().join(",")
+                ),
+            ));
+        }
         let mut names: Vec<String> = Vec::with_capacity(header.len());
         for (i, name) in header.iter().enumerate() {
             let name = name.trim();
@@ -176,18 +386,37 @@ impl Dataset {
                 ),
             ));
         }
+        check_numbering(&names).map_err(|(col, m)| err(Some(header_line), Some(&col), m))?;
         let width = names.len();
         let mut cols: Vec<Vec<f64>> = vec![Vec::new(); width];
+        // a blank line is an error unless only blank lines follow it (the end of the file)
+        let blank_at = inner_blank_line(body, header_line);
         for rec in records {
             let rec = rec.map_err(csv_err)?;
             if is_blank(&rec) {
                 continue;
             }
             let line = line_of(rec.position());
+            if let Some(b) = blank_at.filter(|&b| line.is_some_and(|l| l > b)) {
+                return Err(err(
+                    Some(b),
+                    None,
+                    format!(
+                        "blank line in the middle of the data (the next row is line {}): \
+                         remove it (blank lines are allowed only at the end of the file)",
+                        line.map_or("?".into(), |l| l.to_string())
+                    ),
+                ));
+            }
             if rec.len() != width {
                 let col = names.get(rec.len()).map(String::as_str);
                 let what = if rec.len() < width {
                     "missing values"
+                } else if rec.len() % width == 0
+                    || rec.iter().any(|f| f.contains(';') || f.contains('\t'))
+                {
+                    "too many values: a decimal comma? lpvid reads ',' as the separator and \
+                     '.' as the decimal point"
                 } else {
                     "too many values"
                 };
@@ -266,6 +495,12 @@ impl Dataset {
     /// Write as CSV (full f64 precision), atomically: a temporary file in the same
     /// directory renamed over `path`, so a failure never leaves a half-written file.
     pub fn write_csv(&self, path: &Path) -> Result<(), DataError> {
+        let bytes = self.to_csv_bytes(path)?;
+        write_atomic(path, &bytes)
+    }
+
+    /// The CSV text [`Dataset::write_csv`] writes (`path` names the file in errors).
+    pub fn to_csv_bytes(&self, path: &Path) -> Result<Vec<u8>, DataError> {
         let file = path.display().to_string();
         if self.cols.len() != self.names.len() || self.cols.iter().any(|c| c.len() != self.len()) {
             return Err(DataError::new(
@@ -291,13 +526,59 @@ impl Dataset {
         let mut row = Vec::with_capacity(self.names.len());
         for k in 0..self.len() {
             row.clear();
-            row.extend(self.cols.iter().map(|c| format!("{}", c[k])));
+            row.extend(self.cols.iter().map(|c| fmt_number(c[k])));
             w.write_record(&row).map_err(io)?;
         }
         let bytes = w
             .into_inner()
             .map_err(|e| DataError::new(&file, None, None, format!("cannot write: {e}")))?;
-        write_atomic(path, &bytes)
+        Ok(bytes)
+    }
+
+    /// Error when column `name` (if present) holds values whose squares overflow or
+    /// underflow in f64 (magnitudes above [`MAX_MAGNITUDE`], or all non-zero ones below
+    /// its inverse): a scale problem, reported as such rather than as a constant column or a
+    /// failed fit.
+    pub fn check_scale(&self, name: &str) -> Result<(), DataError> {
+        let Some(col) = self.column(name) else {
+            return Ok(());
+        };
+        let (k, big) = col.iter().enumerate().fold((0, 0.0f64), |(kb, b), (k, v)| {
+            if v.abs() > b {
+                (k, v.abs())
+            } else {
+                (kb, b)
+            }
+        });
+        if big > MAX_MAGNITUDE {
+            return Err(DataError::new(
+                &self.source,
+                Some(k + 2),
+                Some(name),
+                format!(
+                    "column '{name}': value {:e} is too large: the fit squares the data and \
+                     values above {MAX_MAGNITUDE:e} overflow; rescale the column (e.g. divide it \
+                     by {:e})",
+                    col[k],
+                    10f64.powi(big.log10().floor() as i32)
+                ),
+            ));
+        }
+        if big > 0.0 && big < 1.0 / MAX_MAGNITUDE {
+            return Err(DataError::new(
+                &self.source,
+                None,
+                Some(name),
+                format!(
+                    "column '{name}': every value is below {:e} in magnitude (largest {big:e}): \
+                     their squares underflow to zero; rescale the column (e.g. multiply it by \
+                     {:e})",
+                    1.0 / MAX_MAGNITUDE,
+                    10f64.powi(-(big.log10().floor() as i32))
+                ),
+            ));
+        }
+        Ok(())
     }
 
     /// Error unless column `name` exists and varies: a constant regressor carries no
@@ -328,6 +609,22 @@ impl Dataset {
         }
     }
 }
+
+/// A number as a data file writes it: the shortest text that reads back exactly, in plain
+/// notation between 1e-5 and 1e16 in magnitude (as `{}` prints it) and in exponent notation
+/// outside (`{}` would print 1e95 as 96 digits).
+pub fn fmt_number(v: f64) -> String {
+    let a = v.abs();
+    if a == 0.0 || (1e-5..1e16).contains(&a) {
+        format!("{v}")
+    } else {
+        format!("{v:e}")
+    }
+}
+
+/// Largest magnitude a fitted column may have: the fits form squares and products of the
+/// data, and above about 1e150 they overflow (below 1e-150 they underflow to zero).
+pub const MAX_MAGNITUDE: f64 = 1e150;
 
 /// 1-based line numbers of byte offsets, for offsets asked in increasing order.
 struct LineCounter<'a> {
@@ -374,36 +671,244 @@ fn is_blank(r: &csv::StringRecord) -> bool {
 }
 
 /// Write `bytes` to `path` through a temporary file in the same directory and a rename, so
-/// readers see either the old file or the complete new one.
-pub(crate) fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), DataError> {
-    let file = path.display().to_string();
-    let fail = |what: &str, e: std::io::Error| {
-        DataError::new(&file, None, None, format!("cannot write ({what}): {e}"))
-    };
-    let name = path
-        .file_name()
-        .ok_or_else(|| DataError::new(&file, None, None, "cannot write: not a file name"))?;
-    let dir = match path.parent() {
+/// readers see either the old file or the complete new one. A destination that exists and
+/// is not a regular file (`/dev/null`, `/dev/full`, a FIFO, a terminal) is written through
+/// instead, never replaced; a symbolic link is followed (its target is replaced, not the
+/// link).
+pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), DataError> {
+    stage_write(path, bytes)?.commit()
+}
+
+/// A write prepared by [`stage_write`]: for a regular destination the complete temporary
+/// file next to it, for a non-regular one the bytes to write through. Nothing at the
+/// destination has changed until [`StagedWrite::commit`] (or [`commit_all`]); dropping it
+/// removes the temporary file.
+#[derive(Debug)]
+pub struct StagedWrite {
+    /// The path as the caller gave it (for messages).
+    shown: String,
+    /// Where the bytes go (symbolic links resolved).
+    target: PathBuf,
+    /// The temporary file, or the bytes for a write-through destination.
+    kind: Staged,
+}
+
+#[derive(Debug)]
+enum Staged {
+    Temp(Option<PathBuf>),
+    Through(Vec<u8>),
+}
+
+/// The destination `path` resolves to (a symbolic link's target) and whether it is an
+/// existing non-regular file that must be written through.
+fn resolve_destination(path: &Path) -> (PathBuf, bool) {
+    match fs::metadata(path) {
+        Ok(m) => {
+            let target = fs::canonicalize(path).unwrap_or_else(|_| path.to_path_buf());
+            (target, !m.file_type().is_file())
+        }
+        Err(_) => (path.to_path_buf(), false),
+    }
+}
+
+/// The directory a temporary file for `target` goes into.
+fn dir_of(target: &Path) -> PathBuf {
+    match target.parent() {
         Some(d) if !d.as_os_str().is_empty() => d.to_path_buf(),
         _ => PathBuf::from("."),
-    };
+    }
+}
+
+/// A fresh temporary name next to `target`.
+fn temp_path(target: &Path) -> Option<PathBuf> {
+    static COUNTER: std::sync::atomic::AtomicUsize = std::sync::atomic::AtomicUsize::new(0);
+    let name = target.file_name()?;
     let mut tmp_name = std::ffi::OsString::from(".");
     tmp_name.push(name);
-    static COUNTER: std::sync::atomic::AtomicUsize = std::sync::atomic::AtomicUsize::new(0);
     let unique = COUNTER.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
     tmp_name.push(format!(".{}-{unique}.tmp", std::process::id()));
-    let tmp = dir.join(tmp_name);
-    let result = (|| {
-        let mut f = fs::File::create(&tmp).map_err(|e| fail("create temporary file", e))?;
-        f.write_all(bytes).map_err(|e| fail("write", e))?;
-        f.sync_all().map_err(|e| fail("sync", e))?;
-        drop(f);
-        fs::rename(&tmp, path).map_err(|e| fail("rename temporary file", e))
-    })();
-    if result.is_err() {
-        let _ = fs::remove_file(&tmp);
+    Some(dir_of(target).join(tmp_name))
+}
+
+/// Check, before any work, that `path` can be written: not a directory, and for a regular
+/// (or new) file an existing directory where a file can be created (probed by creating
+/// and removing a temporary file). A non-regular destination is accepted as it is.
+pub fn check_destination(path: &Path) -> Result<(), DataError> {
+    let file = path.display().to_string();
+    let bad = |m: String| Err(DataError::new(&file, None, None, m));
+    if path.file_name().is_none() {
+        return bad("cannot write: not a file name".into());
     }
-    result
+    if let Ok(m) = fs::metadata(path) {
+        if m.is_dir() {
+            return bad("cannot write: is a directory".into());
+        }
+    }
+    let (target, through) = resolve_destination(path);
+    if through {
+        return Ok(());
+    }
+    let dir = dir_of(&target);
+    match fs::metadata(&dir) {
+        Ok(m) if m.is_dir() => {}
+        Ok(_) => {
+            return bad(format!(
+                "cannot write: {} is not a directory",
+                dir.display()
+            ))
+        }
+        Err(e) => {
+            return bad(format!(
+                "cannot write: directory {} does not exist ({e})",
+                dir.display()
+            ))
+        }
+    }
+    let Some(probe) = temp_path(&target) else {
+        return bad("cannot write: not a file name".into());
+    };
+    match fs::OpenOptions::new()
+        .write(true)
+        .create_new(true)
+        .open(&probe)
+    {
+        Ok(_) => {
+            let _ = fs::remove_file(&probe);
+            Ok(())
+        }
+        Err(e) => bad(format!(
+            "cannot write: cannot create a file in {} ({e})",
+            dir.display()
+        )),
+    }
+}
+
+/// Prepare writing `bytes` to `path` (see [`StagedWrite`]): a regular destination gets its
+/// complete temporary file now (synced), so a later [`StagedWrite::commit`] is a rename.
+pub fn stage_write(path: &Path, bytes: &[u8]) -> Result<StagedWrite, DataError> {
+    let shown = path.display().to_string();
+    let fail = |what: &str, e: std::io::Error| {
+        DataError::new(&shown, None, None, format!("cannot write ({what}): {e}"))
+    };
+    if path.file_name().is_none() {
+        return Err(DataError::new(
+            &shown,
+            None,
+            None,
+            "cannot write: not a file name",
+        ));
+    }
+    let (target, through) = resolve_destination(path);
+    if through {
+        return Ok(StagedWrite {
+            shown: shown.clone(),
+            target,
+            kind: Staged::Through(bytes.to_vec()),
+        });
+    }
+    let tmp = temp_path(&target)
+        .ok_or_else(|| DataError::new(&shown, None, None, "cannot write: not a file name"))?;
+    let staged = StagedWrite {
+        shown: shown.clone(),
+        target,
+        kind: Staged::Temp(Some(tmp.clone())),
+    };
+    let mut f = fs::File::create(&tmp).map_err(|e| fail("create temporary file", e))?;
+    f.write_all(bytes).map_err(|e| fail("write", e))?;
+    f.sync_all().map_err(|e| fail("sync", e))?;
+    Ok(staged)
+}
+
+impl StagedWrite {
+    /// The destination as the caller gave it.
+    pub fn path(&self) -> &str {
+        &self.shown
+    }
+
+    /// Put the bytes in place: rename the temporary file over the destination, or write
+    /// through to a non-regular destination (a write error there, e.g. `/dev/full`, is an
+    /// error).
+    pub fn commit(mut self) -> Result<(), DataError> {
+        let fail = |what: &str, e: std::io::Error| {
+            DataError::new(
+                &self.shown,
+                None,
+                None,
+                format!("cannot write ({what}): {e}"),
+            )
+        };
+        match &mut self.kind {
+            Staged::Through(bytes) => {
+                let mut f = fs::OpenOptions::new()
+                    .write(true)
+                    .truncate(true)
+                    .open(&self.target)
+                    .map_err(|e| fail("open", e))?;
+                f.write_all(bytes).map_err(|e| fail("write", e))?;
+                f.flush().map_err(|e| fail("write", e))?;
+                Ok(())
+            }
+            Staged::Temp(tmp) => {
+                let t = tmp
+                    .take()
+                    .expect("a staged temporary file is committed once");
+                fs::rename(&t, &self.target).map_err(|e| {
+                    let _ = fs::remove_file(&t);
+                    fail("rename temporary file", e)
+                })
+            }
+        }
+    }
+
+    fn is_through(&self) -> bool {
+        matches!(self.kind, Staged::Through(_))
+    }
+}
+
+impl Drop for StagedWrite {
+    fn drop(&mut self) {
+        if let Staged::Temp(Some(t)) = &self.kind {
+            let _ = fs::remove_file(t);
+        }
+    }
+}
+
+/// Commit several staged writes together: the write-through destinations first (they can
+/// fail, e.g. `/dev/full`), then the renames; on the first failure the remaining
+/// temporary files are removed and their destinations left as they were.
+pub fn commit_all(staged: Vec<StagedWrite>) -> Result<(), DataError> {
+    let (through, renames): (Vec<_>, Vec<_>) = staged.into_iter().partition(|s| s.is_through());
+    for s in through.into_iter().chain(renames) {
+        s.commit()?;
+    }
+    Ok(())
+}
+
+/// Whether `a` and `b` name the same file: the same device and inode when both exist (hard
+/// links, symbolic links, `./x` and `x`), else the same absolute path.
+pub fn same_file(a: &Path, b: &Path) -> bool {
+    use std::os::unix::fs::MetadataExt;
+    match (fs::metadata(a), fs::metadata(b)) {
+        (Ok(ma), Ok(mb)) => ma.dev() == mb.dev() && ma.ino() == mb.ino(),
+        _ => {
+            let abs = |p: &Path| {
+                let p = if p.is_absolute() {
+                    p.to_path_buf()
+                } else {
+                    std::env::current_dir().unwrap_or_default().join(p)
+                };
+                // resolve the directory part when it exists (the file itself may not)
+                match (
+                    p.parent().and_then(|d| fs::canonicalize(d).ok()),
+                    p.file_name(),
+                ) {
+                    (Some(d), Some(n)) => d.join(n),
+                    _ => p,
+                }
+            };
+            abs(a) == abs(b)
+        }
+    }
 }
 
 #[cfg(test)]
@@ -424,7 +929,7 @@ mod tests {
 
     #[test]
     fn parses_columns_whitespace_scientific_and_bom() {
-        let ds = parse("\u{feff}t, u1 ,y1,p1\n0, 1e-3 , -2.5E+2, .5\n\n1,2,3,4\n").unwrap();
+        let ds = parse("\u{feff}t, u1 ,y1,p1\n0, 1e-3 , -2.5E+2, .5\n1,2,3,4\n\n \n").unwrap();
         assert_eq!(ds.names, ["t", "u1", "y1", "p1"]);
         assert_eq!(ds.len(), 2);
         assert_eq!(ds.column("u1").unwrap(), &[1e-3, 2.0]);
@@ -436,10 +941,59 @@ mod tests {
 
     #[test]
     fn channels_are_contiguous_from_one() {
-        let ds = parse("u1,u2,u4,y1,p2,q_ref\n1,2,3,4,5,6\n").unwrap();
+        let ds = parse("u1,u2,y1,q_ref,u01,p1x\n1,2,3,4,5,6\n").unwrap();
         assert_eq!(ds.channels('u'), ["u1", "u2"]);
         assert_eq!(ds.channels('y'), ["y1"]);
         assert!(ds.channels('p').is_empty());
+    }
+
+    #[test]
+    fn signal_numbering_with_a_gap_is_an_error() {
+        let e = parse_err("u2,y1,p1\n1,2,3\n");
+        assert_eq!((e.line, e.column.as_deref()), (Some(1), Some("u2")));
+        assert!(e.message.contains("no u1"), "{e}");
+        let e = parse_err("u1,u3,y1,y2,p1\n1,2,3,4,5\n");
+        assert_eq!(e.column.as_deref(), Some("u3"));
+        assert!(e.message.contains("u2 is missing"), "{e}");
+        let e = parse_err("u1,y1,p2\n1,2,3\n");
+        assert_eq!(e.column.as_deref(), Some("p2"));
+    }
+
+    #[test]
+    fn blank_line_in_the_middle_is_an_error() {
+        let e = parse_err("u1,y1\n1,2\n\n3,4\n");
+        assert_eq!(e.line, Some(3));
+        assert!(e.message.contains("blank line"), "{e}");
+        let e = parse_err("u1,y1\r\n1,2\r\n  \r\n3,4\r\n");
+        assert_eq!(e.line, Some(3));
+        // trailing blank lines and leading ones before the header are fine
+        assert_eq!(parse("\n\nu1,y1\n1,2\n3,4\n\n\n  \n").unwrap().len(), 2);
+    }
+
+    #[test]
+    fn foreign_separators_are_named() {
+        let e = parse_err("u1;y1;p1\n0,5;1,2;0,3\n");
+        assert_eq!(e.line, Some(1));
+        assert!(e.message.contains("separator"), "{e}");
+        let e = parse_err("u1\ty1\n1\t2\n");
+        assert!(e.message.contains("separator"), "{e}");
+        // a decimal comma in a comma-separated file
+        let e = parse_err("u1,y1,p1\n0,5,1,25,0,3\n");
+        assert!(e.message.contains("separator"), "{e}");
+        let e = parse_err("u1,y1\n1,\"2,5\"\n");
+        assert!(e.message.contains("separator"), "{e}");
+    }
+
+    #[test]
+    fn endless_lines_are_stopped() {
+        let zeros = std::io::repeat(0).take(3 * MAX_LINE_BYTES as u64);
+        let e = Dataset::parse("z.csv", zeros).unwrap_err();
+        assert_eq!(e.line, Some(1));
+        assert!(e.message.contains("line longer than"), "{e}");
+        let e = read_input(Path::new("/dev/zero")).unwrap_err();
+        assert!(e.message.contains("character device"), "{e}");
+        let e = read_input(Path::new("/")).unwrap_err();
+        assert!(e.message.contains("directory"), "{e}");
     }
 
     #[test]
@@ -478,11 +1032,11 @@ mod tests {
         assert!(e
             .to_string()
             .starts_with("d.csv:3: column 'p1': expected 3 fields"));
-        let e = parse_err("u1,y1\n1,2\n\n1,2,3\n");
-        assert_eq!(e.line, Some(4));
+        let e = parse_err("u1,y1\n1,2\n1,2,3\n");
+        assert_eq!(e.line, Some(3));
         assert!(e.message.contains("expected 2 fields, found 3"), "{e}");
-        let e = parse_err("u1,y1\r\n1,2\r\n\r\n  \r\n\r\n1,x\r\n");
-        assert_eq!((e.line, e.column.as_deref()), (Some(6), Some("y1")));
+        let e = parse_err("u1,y1\r\n1,2\r\n1,x\r\n");
+        assert_eq!((e.line, e.column.as_deref()), (Some(3), Some("y1")));
         let e = parse_err("\n\nu1,y1\n1,2,3\n");
         assert_eq!(e.line, Some(4));
     }
@@ -569,6 +1123,43 @@ mod tests {
         assert_eq!(back.source, path.display().to_string());
         // only the final file is left behind
         assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 1);
+    }
+
+    #[test]
+    fn scale_problems_are_named() {
+        let ds = parse("u1,y1,p1\n1,2e300,0.5\n2,-3e300,0.25\n").unwrap();
+        ds.check_scale("u1").unwrap();
+        let e = ds.check_scale("y1").unwrap_err();
+        assert_eq!((e.line, e.column.as_deref()), (Some(3), Some("y1")));
+        assert!(
+            e.message.contains("too large") && !e.message.contains("constant"),
+            "{e}"
+        );
+        let ds = parse("u1,y1\n1e-200,0\n-2e-190,1\n").unwrap();
+        let e = ds.check_scale("u1").unwrap_err();
+        assert!(e.message.contains("underflow"), "{e}");
+        ds.check_scale("y1").unwrap();
+    }
+
+    #[test]
+    fn numbers_are_written_short() {
+        assert_eq!(fmt_number(1e95), "1e95");
+        assert_eq!(fmt_number(-2.5e-300), "-2.5e-300");
+        assert_eq!(fmt_number(0.1), "0.1");
+        assert_eq!(fmt_number(-3.0), "-3");
+        assert_eq!(fmt_number(0.0), "0");
+        for v in [
+            1e95,
+            1.0 / 3.0,
+            123456789.123,
+            7e-6,
+            1e16,
+            f64::MAX,
+            f64::MIN_POSITIVE,
+        ] {
+            assert_eq!(fmt_number(v).parse::<f64>().unwrap(), v);
+            assert!(fmt_number(v).len() < 26, "{}", fmt_number(v));
+        }
     }
 
     #[test]

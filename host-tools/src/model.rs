@@ -9,7 +9,7 @@ use nalgebra::DMatrix;
 use serde::{Deserialize, Serialize};
 use serde_json::{Map, Value};
 
-use crate::data::{write_atomic, DataError, Dataset};
+use crate::data::{DataError, Dataset};
 use crate::lpvss::{LpvSs, Signals};
 
 /// The column name that stands for the sample index k (so `sin` of it is a sinusoid in time).
@@ -437,6 +437,13 @@ impl ModelFile {
     /// Validate and write atomically (temporary file + rename): an invalid model is refused
     /// and nothing half-written is ever left at `path`.
     pub fn write(&self, path: &Path) -> Result<(), DataError> {
+        self.stage(path)?.commit()
+    }
+
+    /// Validate and prepare writing to `path` ([`crate::data::stage_write`]): nothing at
+    /// `path` changes until the returned write is committed, so a command can write all its
+    /// outputs together at the end.
+    pub fn stage(&self, path: &Path) -> Result<crate::data::StagedWrite, DataError> {
         let file = path.display().to_string();
         if let Some(at) = self.first_non_finite() {
             return Err(DataError::new(
@@ -456,7 +463,7 @@ impl ModelFile {
             ),
             ..e
         })?;
-        write_atomic(path, text.as_bytes())
+        crate::data::stage_write(path, text.as_bytes())
     }
 
     /// The path of the first NaN or infinite number in the model, if any.

@@ -69,6 +69,9 @@ pub struct Identified {
     pub dims: (usize, usize, usize),
     /// The observer step: gains used, certificates, stability region, lines to report.
     pub observer: ObserverStep,
+    /// What looks wrong with the fit (degenerate, diverging, unstable predictor, fewer
+    /// windows than regressors), each with what to try; front ends print them.
+    pub warnings: Vec<String>,
 }
 
 /// Identify an LPV state-space model from a training file (and a validation file, which
@@ -113,7 +116,9 @@ pub fn identify(
         Some(v) => Some(score(&model, v, Mode::FreeRun)?),
         None => None,
     };
+    let warnings = pbsid_warnings(opts, &fit, &obs_step, &train_score, val_score.as_ref());
     Ok(Identified {
+        warnings,
         dims: (sig.u.ncols(), sig.y.ncols(), sig.p.ncols()),
         samples: ds.len(),
         model,
@@ -122,6 +127,58 @@ pub fn identify(
         val_score,
         observer: obs_step,
     })
+}
+
+/// The warnings of an LPV-PBSID_opt fit: degenerate (no variance explained on its own
+/// training data, fewer windows than regressors), diverging free run, unstable one-step
+/// predictor somewhere in the scheduling box; each says what to try.
+pub fn pbsid_warnings(
+    opts: &PbsidOptions,
+    fit: &PbsidFit,
+    obs: &ObserverStep,
+    train: &Score,
+    val: Option<&Score>,
+) -> Vec<String> {
+    let mut w = Vec::new();
+    let p = opts.past;
+    let smaller = if p > 1 {
+        format!("a smaller --past (now {p}, e.g. {})", (p / 2).max(1))
+    } else {
+        "more data".to_string()
+    };
+    let q_all = fit.q + if opts.feedthrough { fit.model.r() } else { 0 };
+    if fit.windows <= q_all {
+        w.push(format!(
+            "only {} windows for {q_all} regressors: the regression has more unknowns than \
+             equations and rests on the regularisation alone; try {smaller} or more data",
+            fit.windows
+        ));
+    }
+    for sc in std::iter::once(train).chain(val) {
+        if let Some(k) = sc.diverged_at {
+            w.push(format!(
+                "the free-run simulation on {} diverged at sample {k}: its VAF/BFR mean \
+                 nothing; try {smaller}, a smaller --order, or --refine",
+                sc.file
+            ));
+        }
+    }
+    if train.diverged_at.is_none() && train.vaf_mean < 1.0 {
+        w.push(format!(
+            "degenerate fit: VAF {:.3} % on its own training data ({}); try {smaller}, a fixed \
+             --order, or check that the columns are the signals you mean",
+            train.vaf_mean, train.file
+        ));
+    }
+    if obs.max_rho >= 1.0 {
+        w.push(format!(
+            "UNSTABLE predictor: the one-step predictor A(mu) - K(mu) C has spectral radius \
+             {:.4} >= 1 in the scheduling box (see the stability region); try --observer hinf, \
+             {smaller}, or a smaller --order",
+            obs.max_rho
+        ));
+    }
+    w
 }
 
 /// Identify an LPV state-space model from extended second-moment statistics alone (a
@@ -178,6 +235,11 @@ pub fn identify_arx(
 ) -> Result<ArxIdentified, Error> {
     let ds = &train.data;
     let map = SignalMap::default_for(ds)?;
+    for prefix in ['u', 'y', 'p'] {
+        for name in ds.channels(prefix) {
+            ds.check_scale(&name)?;
+        }
+    }
     let s = ds.channels('p').len();
     arx::check_options(opts, s)?;
     let dims = ArxDims::new(ds.channels('u').len(), s, opts.na, opts.nb, opts.ng).map_err(|e| {

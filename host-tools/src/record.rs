@@ -37,14 +37,8 @@ pub struct DataFile {
 impl DataFile {
     /// Read and parse `path` (errors name the file, line and column).
     pub fn read(path: &Path) -> Result<DataFile, DataError> {
-        let bytes = std::fs::read(path).map_err(|e| {
-            DataError::new(
-                path.display().to_string(),
-                None,
-                None,
-                format!("cannot read: {e}"),
-            )
-        })?;
+        // refuses devices that never end and bounds pipes and line lengths
+        let bytes = crate::data::read_input(path)?;
         let data = Dataset::parse(&path.display().to_string(), &bytes[..])?;
         Ok(DataFile {
             path: path.to_path_buf(),
@@ -95,6 +89,11 @@ pub fn order_rule(o: Order) -> String {
 /// constant, enough rows for the window.
 pub fn training_signals(ds: &Dataset, past: usize) -> Result<(SignalMap, Signals), DataError> {
     let map = SignalMap::default_for(ds)?;
+    for prefix in ['u', 'y', 'p'] {
+        for name in ds.channels(prefix) {
+            ds.check_scale(&name)?;
+        }
+    }
     for name in ds.channels('u').iter().chain(ds.channels('p').iter()) {
         ds.check_not_constant(name)?;
     }
@@ -142,6 +141,7 @@ pub fn pbsid_fit_record(opts: &PbsidOptions, fit: &PbsidFit, train: Value) -> Va
             "mse_before": before, "mse_after": after, "iterations": it,
         })),
         "regressors": fit.q,
+        "feedthrough_regressors": if opts.feedthrough { fit.model.r() } else { 0 },
         "windows": fit.windows,
         "singular_values": fit.singular_values,
         "scaling": {

@@ -45,6 +45,23 @@ pub struct Score {
     pub vaf_mean: f64,
     /// Mean BFR over outputs.
     pub bfr_mean: f64,
+    /// The first sample (0-based row of the data) where the model's output is not finite
+    /// or larger than [`DIVERGED`] in magnitude: the simulation diverged there and VAF/BFR
+    /// say nothing about the fit. Absent from the JSON when it did not diverge.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub diverged_at: Option<usize>,
+}
+
+/// A simulated output larger than this in magnitude counts as diverged.
+pub const DIVERGED: f64 = 1e100;
+
+/// The first row of `yhat` with a non-finite value or one larger than [`DIVERGED`].
+pub fn diverged_at(yhat: &DMatrix<f64>) -> Option<usize> {
+    (0..yhat.nrows()).find(|&k| {
+        yhat.row(k)
+            .iter()
+            .any(|v| !v.is_finite() || v.abs() > DIVERGED)
+    })
 }
 
 /// Score `model` on `ds`: VAF and BFR (DESIGN.md section 5) of the free run or the
@@ -63,6 +80,7 @@ pub fn score(model: &ModelFile, ds: &Dataset, mode: Mode) -> Result<Score, DataE
         bfr_mean: mean(&bfr),
         vaf,
         bfr,
+        diverged_at: diverged_at(&yhat),
     })
 }
 

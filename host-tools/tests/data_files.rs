@@ -11,9 +11,9 @@ use proptest::prelude::*;
 const CSV: &str = "t, u1,u2,y1,p1,q_ref\n\
 0,1.5,-2e-3,0.25,0.1,7\n\
 1,-0.5,1E+2,  0.5,0.2,7\n\
-\n\
 2,0,3,-1,0.3,\"8\"\n\
-3,2.5,.5,4,0.4,9\r\n";
+3,2.5,.5,4,0.4,9\r\n\
+\n";
 
 const SS: &str = r#"{
   "type": "lpv-ss",

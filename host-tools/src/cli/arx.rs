@@ -135,6 +135,14 @@ fn options_from_args(a: &ArxArgs) -> Result<ArxOptions, ArxError> {
 /// write the model, print the summary.
 pub(super) fn run(a: &ArxArgs, out: &mut dyn Write) -> Result<(), CliError> {
     let opts = options_from_args(a).map_err(crate::Error::from)?;
+    let mut inputs = vec![("--train", a.train.as_path())];
+    if let Some(p) = &a.calib {
+        inputs.push(("--calib", p.as_path()));
+    }
+    if let Some(p) = &a.val {
+        inputs.push(("--val", p.as_path()));
+    }
+    super::files::check_paths(&inputs, &[("--out", a.out.as_path())])?;
     let train = DataFile::read(&a.train)?;
     let calib = match &a.calib {
         Some(p) => Some(DataFile::read(p)?),
@@ -148,7 +156,9 @@ pub(super) fn run(a: &ArxArgs, out: &mut dyn Write) -> Result<(), CliError> {
     let (fitted, model) = (&id.fit, &id.model);
     let (train_score, train_diverged, val_score) =
         (&id.train_score, id.train_diverged, &id.val_score);
-    model.write(&a.out)?;
+    let mut outputs = super::files::Outputs::default();
+    outputs.model(model, &a.out)?;
+    outputs.commit()?;
     if a.json {
         let summary = json!({
             "command": "arx",

@@ -28,13 +28,18 @@ const DEMO_VAL: &[u8] = include_bytes!("../../../fixtures/b1-val.csv");
 
 /// Run `lpvid demo`.
 pub(super) fn run(a: &DemoArgs, out: &mut dyn Write) -> Result<(), CliError> {
+    if let Some(p) = &a.out {
+        super::files::check_paths(&[], &[("--out", p.as_path())])?;
+    }
     let train = DataFile::from_bytes("fixtures/b1-train.csv", DEMO_TRAIN)?;
     let val = Dataset::parse("fixtures/b1-val.csv", DEMO_VAL)?;
     let mut settings = PbsidSettings::new(3);
     settings.fit.reg = Reg::TikhonovGcv;
     let run = pipeline::identify(&train, Some(&val), &settings)?;
     if let Some(p) = &a.out {
-        run.model.write(p)?;
+        let mut outputs = super::files::Outputs::default();
+        outputs.model(&run.model, p)?;
+        outputs.commit()?;
     }
     if a.json {
         return print_json(out, &pbsid_json(&run, a.out.as_deref()));

@@ -2,7 +2,7 @@
 //! statistics and identify from them through [`crate::pipeline::identify_from_stats`], solve
 //! on the device, push a model, reset).
 
-use std::io::{self, IsTerminal, Write};
+use std::io::Write;
 use std::path::PathBuf;
 use std::time::{Duration, Instant};
 
@@ -11,11 +11,13 @@ use lpvid::protocol::{Info, SolveRequest};
 use lpvid::{packed_len, stat_vector_len, PbsidDims, StatsLayout};
 use serde_json::{json, Value};
 
-use super::CliError;
+use super::files::{check_paths, Outputs};
+use super::{CliError, Ui};
 use crate::data::Dataset;
 use crate::link::{
     compare_with_file, extended_gram, open_port, sample_rows, Link, LinkError, LinkOptions,
 };
+use crate::lpvss::Signals;
 use crate::model::{ModelFile, ModelKind, SignalMap};
 use crate::pbsid::{Order, PbsidOptions, Reg};
 use crate::pipeline;
@@ -26,9 +28,11 @@ pub struct DeviceArgs {
     /// Serial port (e.g. /dev/ttyACM0, or the /dev/pts/N QEMU prints).
     #[arg(long)]
     port: PathBuf,
-    /// Reply timeout in milliseconds before a retransmission.
-    #[arg(long, default_value_t = 500)]
-    timeout_ms: u64,
+    /// Reply timeout in milliseconds before a retransmission, for every request including
+    /// the first handshake (default: 500, and 3000 for the first reply of a session, which a
+    /// QEMU pseudo-terminal can hold for about a second).
+    #[arg(long)]
+    timeout_ms: Option<u64>,
     /// Retransmissions per request before giving up.
     #[arg(long, default_value_t = 25)]
     retries: u32,
@@ -132,19 +136,106 @@ fn w(out: &mut dyn Write, s: String) -> Result<(), CliError> {
     Ok(())
 }
 
-/// Run `lpvid device ...`.
-pub(super) fn run(a: &DeviceArgs, out: &mut dyn Write) -> Result<(), CliError> {
-    let port = open_port(&a.port).map_err(link_err)?;
-    let opts = LinkOptions {
-        timeout: Duration::from_millis(a.timeout_ms),
+/// What a device command reads from local files, read and checked before the port is
+/// opened (a bad file fails at once, not after a handshake).
+enum Local {
+    None,
+    Stream(Dataset, Signals, PbsidDims),
+    Push(ModelFile),
+    Pull(Option<(Dataset, Signals)>),
+}
+
+/// Read and check the local inputs of `a`, and check its outputs can be written.
+fn local_inputs(a: &DeviceArgs) -> Result<Local, CliError> {
+    Ok(match &a.action {
+        DeviceAction::Stream(s) => {
+            let ds = Dataset::read_csv(&s.file)?;
+            let map = SignalMap::default_for(&ds)?;
+            let sig = map.evaluate(&ds)?;
+            let dims = PbsidDims::new(sig.u.ncols(), sig.y.ncols(), sig.p.ncols(), s.past)
+                .map_err(|e| CliError::Invalid(format!("{}: {e}", ds.source)))?;
+            Local::Stream(ds, sig, dims)
+        }
+        DeviceAction::Push(p) => {
+            let mf = super::diagnose::read_model(&p.model)?;
+            let ModelKind::Ss(m) = &mf.kind else {
+                return Err(CliError::Invalid(format!(
+                    "{}: the device predictor runs lpv-ss models only",
+                    p.model.display()
+                )));
+            };
+            m.check()
+                .map_err(|e| CliError::Invalid(format!("{}: {e}", p.model.display())))?;
+            Local::Push(mf)
+        }
+        DeviceAction::Pull(p) => {
+            let mut inputs = vec![("--port", a.port.as_path())];
+            if let Some(c) = &p.compare {
+                inputs.push(("--compare", c.as_path()));
+            }
+            let mut outs = Vec::new();
+            if let Some(o) = &p.out {
+                outs.push(("--out", o.as_path()));
+            }
+            if let Some(o) = &p.stats {
+                outs.push(("--stats", o.as_path()));
+            }
+            check_paths(&inputs, &outs)?;
+            match &p.compare {
+                Some(c) => {
+                    let ds = Dataset::read_csv(c)?;
+                    let sig = SignalMap::default_for(&ds)?.evaluate(&ds)?;
+                    Local::Pull(Some((ds, sig)))
+                }
+                None => Local::Pull(None),
+            }
+        }
+        _ => Local::None,
+    })
+}
+
+/// The link settings `a` asks for: `--timeout-ms` applies to every wait, the first
+/// handshake included.
+fn link_options(a: &DeviceArgs) -> LinkOptions {
+    let d = LinkOptions::default();
+    LinkOptions {
+        timeout: a.timeout_ms.map_or(d.timeout, Duration::from_millis),
+        first_timeout: a.timeout_ms.map_or(d.first_timeout, Duration::from_millis),
         retries: a.retries,
         batch: match &a.action {
             DeviceAction::Stream(s) => s.batch,
             _ => 0,
         },
-        ..LinkOptions::default()
+    }
+}
+
+/// What the handshake waits for, in words.
+fn waiting_note(port: &std::path::Path, o: &LinkOptions) -> String {
+    let (first, next) = (o.first_timeout.as_millis(), o.timeout.as_millis());
+    let schedule = if first == next {
+        format!("{next} ms x {} attempts", o.retries + 1)
+    } else {
+        format!(
+            "first reply up to {first} ms, then {next} ms x {} retries",
+            o.retries
+        )
     };
+    format!(
+        "waiting for the device on {} (handshake, {schedule}; --timeout-ms and --retries \
+         change this)",
+        port.display()
+    )
+}
+
+/// Run `lpvid device ...`.
+pub(super) fn run(a: &DeviceArgs, ui: Ui, out: &mut dyn Write) -> Result<(), CliError> {
+    let local = local_inputs(a)?;
+    let opts = link_options(a);
+    let port = open_port(&a.port).map_err(link_err)?;
     let mut link = Link::new(port, opts);
+    if !a.json {
+        ui.note(&waiting_note(&a.port, &opts));
+    }
     let info = link.hello().map_err(link_err)?;
     let result = match &a.action {
         DeviceAction::Info => {
@@ -156,8 +247,18 @@ pub(super) fn run(a: &DeviceArgs, out: &mut dyn Write) -> Result<(), CliError> {
             }
             Ok(v)
         }
-        DeviceAction::Stream(s) => stream_cmd(&mut link, s, a.json),
-        DeviceAction::Pull(p) => pull_cmd(&mut link, p, &info),
+        DeviceAction::Stream(s) => {
+            let Local::Stream(ds, sig, dims) = local else {
+                unreachable!("stream reads its file first")
+            };
+            stream_cmd(&mut link, s, (&ds, &sig, dims), a.json || !ui.progress())
+        }
+        DeviceAction::Pull(p) => {
+            let Local::Pull(cmp) = local else {
+                unreachable!("pull reads its --compare file first")
+            };
+            pull_cmd(&mut link, p, &info, cmp.as_ref())
+        }
         DeviceAction::Solve(s) => {
             let req = SolveRequest {
                 lambda_ratio: s.lambda_ratio,
@@ -168,12 +269,11 @@ pub(super) fn run(a: &DeviceArgs, out: &mut dyn Write) -> Result<(), CliError> {
             Ok(json!({"command": "device solve", "summary": sum, "theta": theta}))
         }
         DeviceAction::Push(p) => {
-            let mf = ModelFile::read(&p.model)?;
+            let Local::Push(mf) = local else {
+                unreachable!("push reads its model first")
+            };
             let ModelKind::Ss(m) = &mf.kind else {
-                return Err(CliError::Invalid(format!(
-                    "{}: the device predictor runs lpv-ss models only",
-                    p.model.display()
-                )));
+                unreachable!("checked by local_inputs")
             };
             let n = link.push_model(m).map_err(link_err)?;
             Ok(
@@ -217,13 +317,9 @@ fn info_json(i: &Info) -> Value {
 fn stream_cmd(
     link: &mut Link<serialport::TTYPort>,
     s: &StreamArgs,
-    json_out: bool,
+    (ds, sig, dims): (&Dataset, &Signals, PbsidDims),
+    no_bar: bool,
 ) -> Result<Value, CliError> {
-    let ds = Dataset::read_csv(&s.file)?;
-    let map = SignalMap::default_for(&ds)?;
-    let sig = map.evaluate(&ds)?;
-    let dims = PbsidDims::new(sig.u.ncols(), sig.y.ncols(), sig.p.ncols(), s.past)
-        .map_err(|e| CliError::Invalid(format!("{}: {e}", ds.source)))?;
     let layout = if s.plain {
         StatsLayout::Plain
     } else {
@@ -244,11 +340,11 @@ fn stream_cmd(
         link.configure(&dims, layout).map_err(link_err)?;
         0
     };
-    let rows = sample_rows(&sig);
+    let rows = sample_rows(sig);
     let per = dims.r + dims.l + dims.s;
     let n = sig.len();
     let skip = (first as usize).min(n);
-    let bar = if !json_out && io::stderr().is_terminal() {
+    let bar = if !no_bar {
         let b = indicatif::ProgressBar::new((n - skip) as u64);
         b.set_style(
             indicatif::ProgressStyle::with_template(
@@ -283,7 +379,9 @@ fn pull_cmd(
     link: &mut Link<serialport::TTYPort>,
     p: &PullArgs,
     info: &Info,
+    compare: Option<&(Dataset, Signals)>,
 ) -> Result<Value, CliError> {
+    let mut outputs = Outputs::default();
     let (st, vals) = link.pull_stats().map_err(link_err)?;
     let dims = PbsidDims::new(st.r as usize, st.l as usize, st.s as usize, st.p as usize)
         .map_err(|e| CliError::Invalid(format!("device dimensions: {e}")))?;
@@ -309,7 +407,7 @@ fn pull_cmd(
         let v = json!({"r": dims.r, "l": dims.l, "s": dims.s, "p": dims.p,
             "layout": res["layout"], "windows": st.windows, "float": if info.float_bytes == 4 {"f32"} else {"f64"},
             "gram_packed_upper_row_major": vals});
-        crate::data::write_atomic(
+        outputs.bytes(
             path,
             serde_json::to_string(&v).unwrap_or_default().as_bytes(),
         )?;
@@ -331,13 +429,11 @@ fn pull_cmd(
                 "float": if info.float_bytes == 4 {"f32"} else {"f64"},
             }),
         )?;
-        mf.write(path)?;
+        outputs.model(&mf, path)?;
         res["model"] = json!({"out": path.display().to_string(), "order": fit.order,
             "singular_values": fit.singular_values});
     }
-    if let Some(path) = &p.compare {
-        let ds = Dataset::read_csv(path)?;
-        let sig = SignalMap::default_for(&ds)?.evaluate(&ds)?;
+    if let (Some(path), Some((_, sig))) = (&p.compare, compare) {
         let with_model = if layout == StatsLayout::Extended {
             Some(&opts)
         } else {
@@ -347,7 +443,7 @@ fn pull_cmd(
             &vals,
             st.windows,
             info.float_bytes,
-            &sig,
+            sig,
             &dims,
             layout,
             with_model,
@@ -383,6 +479,7 @@ fn pull_cmd(
             )));
         }
     }
+    outputs.commit()?;
     Ok(res)
 }
 

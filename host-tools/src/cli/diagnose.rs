@@ -1,15 +1,16 @@
 //! `lpvid diagnose`: residual tests, missing effects, the fix ([`crate::diagnose`]).
 
 use std::io::Write;
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
 use clap::Args;
 
-use super::CliError;
-use crate::data::{DataError, Dataset};
-use crate::diagnose::{diagnose, plots, report, Options};
+use super::files::{check_dir, check_paths, refuse_inputs, Outputs};
+use super::{print_warnings, CliError, Ui};
+use crate::data::{read_input, same_file, DataError, Dataset};
+use crate::diagnose::{diagnose_with_progress, plots, report, Options};
 use crate::model::ModelFile;
-use crate::pipeline::fingerprint;
+use crate::pipeline::{fingerprint, DataFile};
 
 /// `lpvid diagnose` arguments.
 #[derive(Debug, Args)]
@@ -45,58 +46,118 @@ pub struct DiagnoseArgs {
 }
 
 /// Run `lpvid diagnose`.
-pub(super) fn run(a: &DiagnoseArgs, out: &mut dyn Write) -> Result<(), CliError> {
-    let model = ModelFile::read(&a.model)?;
-    let train = Dataset::read_csv(&a.train)?;
-    let val = Dataset::read_csv(&a.val)?;
+pub(super) fn run(a: &DiagnoseArgs, ui: Ui, out: &mut dyn Write) -> Result<(), CliError> {
+    let inputs = [
+        ("--model", a.model.as_path()),
+        ("--train", a.train.as_path()),
+        ("--val", a.val.as_path()),
+    ];
+    let mut outs = Vec::new();
+    if let Some(p) = &a.out {
+        outs.push(("--out", p.as_path()));
+    }
+    if let Some(p) = &a.json {
+        outs.push(("--json", p.as_path()));
+    }
+    check_paths(&inputs, &outs)?;
+    if let Some(dir) = &a.plots {
+        check_dir("--plots", dir, &inputs)?;
+    }
+    let model = read_model(&a.model)?;
+    let train_file = DataFile::read(&a.train)?;
+    let train = &train_file.data;
+    let val_bytes = read_input(&a.val)?;
+    let val = Dataset::parse(&a.val.display().to_string(), &val_bytes[..])?;
+    let mut warnings = Vec::new();
+    let train_fp = fingerprint(&train_file.bytes);
+    if same_file(&a.train, &a.val) || train_fp == fingerprint(&val_bytes) {
+        warnings.push(format!(
+            "--train and --val are the same data ({}): the scores are not held-out, and a \
+             candidate that fits the noise looks like a finding",
+            if same_file(&a.train, &a.val) {
+                "the same file".to_string()
+            } else {
+                format!("identical content, FNV-1a {train_fp}")
+            }
+        ));
+    }
+    if let Some(rec) = model
+        .fit
+        .get("train")
+        .and_then(|t| t.get("fnv1a64"))
+        .and_then(|v| v.as_str())
+    {
+        if rec != train_fp {
+            warnings.push(format!(
+                "--train {} (FNV-1a {train_fp}) is not the file the model was identified on \
+                 (its fit record says {}, FNV-1a {rec}): the refits and the model differ in \
+                 their data",
+                a.train.display(),
+                model.fit["train"]["file"].as_str().unwrap_or("?")
+            ));
+        }
+    }
     let opts = Options {
         fix: a.fix,
         max_steps: a.max_steps,
         threads: a.threads,
     };
-    let mut res = diagnose(&model, &train, &val, &opts).map_err(crate::Error::from)?;
+    let bar = ui.bar(0, "candidate refits");
+    let progress = |done: usize, total: usize| {
+        bar.set_length(total as u64);
+        bar.set_position(done as u64);
+    };
+    let res = diagnose_with_progress(&model, train, &val, &opts, Some(&progress));
+    bar.finish_and_clear();
+    let mut res = res.map_err(crate::Error::from)?;
     res.report.model = a.model.display().to_string();
+    for w in warnings.iter().rev() {
+        res.report.notes.insert(0, format!("warning: {w}"));
+    }
     if !res.report.applied.is_empty() {
-        if let (Ok(bytes), serde_json::Value::Object(m)) =
-            (std::fs::read(&a.train), &mut res.model.fit)
-        {
-            m.insert(
-                "train".into(),
-                serde_json::json!({
-                    "file": a.train.display().to_string(),
-                    "rows": train.len(),
-                    "fnv1a64": fingerprint(&bytes),
-                }),
-            );
+        if let serde_json::Value::Object(m) = &mut res.model.fit {
+            m.insert("train".into(), train_file.record());
         }
     }
+    let mut outputs = Outputs::default();
     if let Some(p) = &a.out {
         if res.report.applied.is_empty() {
             // nothing to add: the model is written unchanged so that scripts find the file
-            model.write(p)?;
+            outputs.model(&model, p)?;
         } else {
-            res.model.write(p)?;
+            outputs.model(&res.model, p)?;
         }
         res.report.out = Some(p.display().to_string());
     }
     if let Some(p) = &a.json {
         let text = serde_json::to_string_pretty(&res.report)
             .map_err(|e| CliError::Invalid(format!("cannot encode the report: {e}")))?;
-        crate::data::write_atomic(p, text.as_bytes())?;
+        outputs.bytes(p, text.as_bytes())?;
     }
     let mut written = Vec::new();
     if let Some(dir) = &a.plots {
-        std::fs::create_dir_all(dir).map_err(|e| {
-            DataError::new(
-                dir.display().to_string(),
-                None,
-                None,
-                format!("cannot create: {e}"),
-            )
-        })?;
-        written = plots::write_all(dir, &res)?;
+        let figs = plots::render_all(dir, &res);
+        let figure_paths: Vec<(&str, &Path)> =
+            figs.iter().map(|(p, _)| ("--plots", p.as_path())).collect();
+        refuse_inputs(&inputs, &figure_paths)?;
+        outputs.figures(dir, &figs)?;
+        written = figs.into_iter().map(|f| f.0).collect();
     }
+    outputs.commit()?;
+    print_warnings(&warnings);
     let text = report::summary(&res.report, &written);
     out.write_all(text.as_bytes())?;
     Ok(())
+}
+
+/// Read a model file, refusing inputs that never end ([`read_input`]).
+pub(super) fn read_model(path: &Path) -> Result<ModelFile, CliError> {
+    let bytes = read_input(path)?;
+    let source = path.display().to_string();
+    let text = String::from_utf8(bytes).map_err(|e| {
+        let at = e.utf8_error().valid_up_to();
+        let line = e.as_bytes()[..at].iter().filter(|&&b| b == b'\n').count() + 1;
+        DataError::new(&source, Some(line), None, "invalid UTF-8 text")
+    })?;
+    Ok(ModelFile::from_json_str(&source, &text)?)
 }

@@ -7,12 +7,13 @@ mod arx;
 mod demo;
 mod device;
 mod diagnose;
+mod files;
 mod pbsid;
 mod stability;
 mod validate;
 
 use std::ffi::OsString;
-use std::io::Write;
+use std::io::{IsTerminal, Write};
 
 use clap::{Parser, Subcommand};
 
@@ -22,8 +23,70 @@ use crate::data::DataError;
 #[derive(Debug, Parser)]
 #[command(name = "lpvid", version, about, long_about = None)]
 pub struct Cli {
+    /// No progress bars and no notes on stderr (warnings and errors are still printed).
+    #[arg(long, global = true)]
+    quiet: bool,
     #[command(subcommand)]
     command: Command,
+}
+
+/// How a command talks to the user besides its output: progress bars and notes on stderr,
+/// off with `--quiet`; bars only when stderr is a terminal.
+#[derive(Debug, Clone, Copy, Default)]
+pub(crate) struct Ui {
+    /// `--quiet`.
+    pub quiet: bool,
+}
+
+impl Ui {
+    /// Whether progress bars are drawn.
+    pub fn progress(&self) -> bool {
+        !self.quiet && std::io::stderr().is_terminal()
+    }
+
+    /// A note on stderr (what is being waited for), unless `--quiet`.
+    pub fn note(&self, msg: &str) {
+        if !self.quiet {
+            eprintln!("{msg}");
+        }
+    }
+
+    /// A spinner with `msg` on stderr (hidden when progress is off).
+    pub fn spinner(&self, msg: &str) -> indicatif::ProgressBar {
+        if !self.progress() {
+            return indicatif::ProgressBar::hidden();
+        }
+        let b = indicatif::ProgressBar::new_spinner();
+        b.set_style(
+            indicatif::ProgressStyle::with_template("{spinner} {msg} ({elapsed})")
+                .unwrap_or_else(|_| indicatif::ProgressStyle::default_spinner()),
+        );
+        b.set_message(msg.to_string());
+        b.enable_steady_tick(std::time::Duration::from_millis(120));
+        b
+    }
+
+    /// A bar of `len` steps with `what` after the counts (hidden when progress is off).
+    pub fn bar(&self, len: u64, what: &str) -> indicatif::ProgressBar {
+        if !self.progress() {
+            return indicatif::ProgressBar::hidden();
+        }
+        let b = indicatif::ProgressBar::new(len);
+        b.set_style(
+            indicatif::ProgressStyle::with_template(&format!(
+                "{{bar:40}} {{pos}}/{{len}} {what} {{elapsed}} eta {{eta}}"
+            ))
+            .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar()),
+        );
+        b
+    }
+}
+
+/// Warnings on stderr, one `warning: ...` line each.
+fn print_warnings(warnings: &[String]) {
+    for w in warnings {
+        eprintln!("warning: {w}");
+    }
 }
 
 #[derive(Debug, Subcommand)]
@@ -92,15 +155,16 @@ where
             return Ok(());
         }
     };
+    let ui = Ui { quiet: cli.quiet };
     match cli.command {
         Command::Demo(a) => demo::run(&a, out),
-        Command::Pbsid(a) => pbsid::run(&a, out),
+        Command::Pbsid(a) => pbsid::run(&a, ui, out),
         Command::Arx(a) => arx::run(&a, out),
         Command::Validate(a) => validate::run_validate(&a, out),
         Command::Simulate(a) => validate::run_simulate(&a, out),
         Command::Stability(a) => stability::run(&a, out),
-        Command::Device(a) => device::run(&a, out),
-        Command::Diagnose(a) => diagnose::run(&a, out),
+        Command::Device(a) => device::run(&a, ui, out),
+        Command::Diagnose(a) => diagnose::run(&a, ui, out),
     }
 }
 

@@ -6,7 +6,8 @@ use std::path::{Path, PathBuf};
 use clap::Args;
 use serde_json::{json, Value};
 
-use super::{fmt_list, print_json, CliError};
+use super::files::{check_paths, Outputs};
+use super::{fmt_list, print_json, print_warnings, CliError, Ui};
 use crate::data::Dataset;
 use crate::observer::{self, ObserverRequest};
 use crate::pbsid::{self, BpdnScore, Order, PbsidOptions, Reg, Solver};
@@ -82,8 +83,8 @@ pub struct PbsidArgs {
     /// Scheduling weight kappa: mean |p|^2 after internal scaling (prior on deep Kronecker terms).
     #[arg(long, default_value_t = pbsid::DEFAULT_SCHED_WEIGHT)]
     pub sched_weight: f64,
-    /// Largest order `--order auto` may choose.
-    #[arg(long, default_value_t = 20)]
+    /// Largest order `--order auto` may choose (at least 1).
+    #[arg(long, default_value_t = 20, value_parser = clap::builder::RangedU64ValueParser::<usize>::new().range(1..))]
     pub max_order: usize,
     /// Where to write the model (JSON).
     #[arg(long)]
@@ -127,12 +128,18 @@ pub(super) fn print_pbsid(
         "LPV-PBSID_opt on {}: {} samples, {r} inputs, {l} outputs, {s} scheduling signals",
         run.train_score.file, run.samples
     )?;
+    let r_ft = if opts.feedthrough { r } else { 0 };
     writeln!(
         out,
-        "  past window p = {}, future f = {}: {} regressors, {} windows",
+        "  past window p = {}, future f = {}: q = {} regressors{}, {} windows",
         opts.past,
         opts.future.unwrap_or(opts.past),
         f.q,
+        if r_ft > 0 {
+            format!(" (+ {r_ft} feedthrough)")
+        } else {
+            String::new()
+        },
         f.windows
     )?;
     writeln!(out, "  solver: {}", f.solver_reason)?;
@@ -178,8 +185,31 @@ pub(super) fn print_pbsid(
         )?;
     }
     writeln!(out, "  order n = {}: {}", f.order, f.order_reason)?;
+    if opts.refine {
+        match f.refinement {
+            Some((before, after, it)) => writeln!(
+                out,
+                "  --refine: output-error Levenberg-Marquardt, training mse {before:.4e} -> \
+                 {after:.4e} in {it} iterations{}",
+                if after < before {
+                    ""
+                } else {
+                    " (no improvement: the subspace model is kept)"
+                }
+            )?,
+            None => writeln!(out, "  --refine: not run")?,
+        }
+    }
     for line in &run.observer.lines {
         writeln!(out, "  {line}")?;
+    }
+    if run.observer.max_rho >= 1.0 {
+        writeln!(
+            out,
+            "  UNSTABLE predictor: spectral radius of A(mu) - K(mu) C up to {:.4} >= 1 in the \
+             scheduling box",
+            run.observer.max_rho
+        )?;
     }
     for sc in std::iter::once(&run.train_score).chain(run.val_score.iter()) {
         writeln!(
@@ -210,17 +240,23 @@ pub(super) fn pbsid_json(run: &Identified, out_path: Option<&Path>) -> Value {
         "fit": run.model.fit,
         "observer": run.observer.used,
         "stability_region": run.observer.stability_json(),
+        "warnings": run.warnings,
     })
 }
 
 /// Run `lpvid pbsid`.
-pub(super) fn run(a: &PbsidArgs, out: &mut dyn Write) -> Result<(), CliError> {
+pub(super) fn run(a: &PbsidArgs, ui: Ui, out: &mut dyn Write) -> Result<(), CliError> {
     if a.bpdn_score.is_some() && a.reg != Reg::BpdnSv {
         return Err(CliError::Invalid(format!(
             "--bpdn-score applies to --reg bpdn-sv only (got --reg {})",
             reg_name(a.reg)
         )));
     }
+    let mut inputs = vec![("--train", a.train.as_path())];
+    if let Some(v) = &a.val {
+        inputs.push(("--val", v.as_path()));
+    }
+    check_paths(&inputs, &[("--out", a.out.as_path())])?;
     let settings = PbsidSettings {
         fit: pbsid_options(a),
         observer: ObserverRequest {
@@ -232,13 +268,27 @@ pub(super) fn run(a: &PbsidArgs, out: &mut dyn Write) -> Result<(), CliError> {
             },
         },
     };
+    let spin = ui.spinner(&format!("reading {}", a.train.display()));
     let train = DataFile::read(&a.train)?;
     let val = match &a.val {
-        Some(p) => Some(Dataset::read_csv(p)?),
+        Some(p) => {
+            spin.set_message(format!("reading {}", p.display()));
+            Some(Dataset::read_csv(p)?)
+        }
         None => None,
     };
-    let run = pipeline::identify(&train, val.as_ref(), &settings)?;
-    run.model.write(&a.out)?;
+    spin.set_message(format!(
+        "fitting LPV-PBSID_opt (p = {}, {} samples)",
+        a.past,
+        train.data.len()
+    ));
+    let run = pipeline::identify(&train, val.as_ref(), &settings);
+    spin.finish_and_clear();
+    let run = run?;
+    let mut outputs = Outputs::default();
+    outputs.model(&run.model, &a.out)?;
+    outputs.commit()?;
+    print_warnings(&run.warnings);
     if a.json {
         print_json(out, &pbsid_json(&run, Some(&a.out)))?;
     } else {

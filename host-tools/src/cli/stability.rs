@@ -9,7 +9,7 @@ use serde_json::Value;
 
 use super::{print_json, CliError};
 use crate::data::Dataset;
-use crate::model::{ModelFile, ModelKind};
+use crate::model::ModelKind;
 use crate::observer;
 
 /// `lpvid stability` arguments.
@@ -34,7 +34,7 @@ pub struct StabilityArgs {
 /// around its mean where the frozen predictor A(mu) - K(mu) C(mu) has spectral radius < 1,
 /// and the largest spectral radius over the operating box.
 pub(super) fn run(a: &StabilityArgs, out: &mut dyn Write) -> Result<(), CliError> {
-    let model = ModelFile::read(&a.model)?;
+    let model = super::diagnose::read_model(&a.model)?;
     let ss = match &model.kind {
         ModelKind::Ss(m) => m,
         _ => {

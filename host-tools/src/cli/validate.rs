@@ -6,11 +6,12 @@ use std::path::PathBuf;
 use clap::Args;
 use serde_json::json;
 
+use super::diagnose::read_model;
+use super::files::{check_paths, Outputs};
 use super::{print_json, CliError};
 use crate::data::Dataset;
-use crate::model::ModelFile;
 use crate::pipeline::score;
-use crate::simulate::{simulate, Mode};
+use crate::simulate::{diverged_at, simulate, Mode};
 
 #[derive(Debug, Args)]
 pub struct ValidateArgs {
@@ -39,14 +40,15 @@ pub struct SimulateArgs {
     /// One-step-ahead predictor instead of free run.
     #[arg(long)]
     pub predictor: bool,
-    /// Output CSV: the data columns plus yhat1.. per model output.
+    /// Output CSV: the data columns plus yhat1.. per model output. A simulation that
+    /// diverges (a value not finite or beyond 1e100) is an error and writes nothing.
     #[arg(long)]
     pub out: PathBuf,
 }
 
 /// Run `lpvid validate`.
 pub(super) fn run_validate(a: &ValidateArgs, out: &mut dyn Write) -> Result<(), CliError> {
-    let model = ModelFile::read(&a.model)?;
+    let model = read_model(&a.model)?;
     let ds = Dataset::read_csv(&a.data)?;
     let mode = if a.predictor {
         Mode::Predictor
@@ -54,10 +56,20 @@ pub(super) fn run_validate(a: &ValidateArgs, out: &mut dyn Write) -> Result<(), 
         Mode::FreeRun
     };
     let sc = score(&model, &ds, mode)?;
+    let diverged = sc.diverged_at.map(|k| {
+        format!(
+            "diverged at sample {k} (line {} of {}): the {} output is not finite or beyond 1e100 \
+             from there on, so VAF and BFR say nothing about the fit",
+            k + 2,
+            sc.file,
+            sc.mode
+        )
+    });
     if a.json {
         print_json(
             out,
-            &json!({"command": "validate", "model": a.model.display().to_string(), "score": sc}),
+            &json!({"command": "validate", "model": a.model.display().to_string(), "score": sc,
+                "diverged": diverged}),
         )?;
     } else {
         writeln!(out, "{} on {} ({}):", a.model.display(), sc.file, sc.mode)?;
@@ -69,13 +81,20 @@ pub(super) fn run_validate(a: &ValidateArgs, out: &mut dyn Write) -> Result<(), 
             "  mean:     VAF {:.3} %  BFR {:.2} %",
             sc.vaf_mean, sc.bfr_mean
         )?;
+        if let Some(d) = &diverged {
+            writeln!(out, "  {d}")?;
+        }
     }
     Ok(())
 }
 
 /// Run `lpvid simulate`.
 pub(super) fn run_simulate(a: &SimulateArgs, out: &mut dyn Write) -> Result<(), CliError> {
-    let model = ModelFile::read(&a.model)?;
+    check_paths(
+        &[("--model", a.model.as_path()), ("--data", a.data.as_path())],
+        &[("--out", a.out.as_path())],
+    )?;
+    let model = read_model(&a.model)?;
     let mut ds = Dataset::read_csv(&a.data)?;
     let mode = if a.predictor {
         Mode::Predictor
@@ -83,6 +102,16 @@ pub(super) fn run_simulate(a: &SimulateArgs, out: &mut dyn Write) -> Result<(), 
         Mode::FreeRun
     };
     let (_, yhat) = simulate(&model, &ds, mode)?;
+    if let Some(k) = diverged_at(&yhat) {
+        return Err(CliError::Invalid(format!(
+            "{}: the simulation diverged at sample {k} (line {} of {}): the output is not \
+             finite or beyond 1e100 from there on; nothing written to {}",
+            a.model.display(),
+            k + 2,
+            ds.source,
+            a.out.display()
+        )));
+    }
     for j in 0..yhat.ncols() {
         let mut name = format!("yhat{}", j + 1);
         while ds.names.contains(&name) {
@@ -91,7 +120,9 @@ pub(super) fn run_simulate(a: &SimulateArgs, out: &mut dyn Write) -> Result<(), 
         ds.names.push(name);
         ds.cols.push(yhat.column(j).iter().copied().collect());
     }
-    ds.write_csv(&a.out)?;
+    let mut outputs = Outputs::default();
+    outputs.bytes(&a.out, &ds.to_csv_bytes(&a.out)?)?;
+    outputs.commit()?;
     writeln!(
         out,
         "wrote {} rows with {} simulated outputs to {}",

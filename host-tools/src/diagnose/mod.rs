@@ -216,6 +216,7 @@ fn score_all(
     fit: &serde_json::Value,
     base: &Eval,
     threads: usize,
+    progress: Option<Progress<'_>>,
 ) -> Vec<Scored> {
     let loss_free = base.loss(Mode::FreeRun);
     let loss_pred = base.loss(Mode::Predictor);
@@ -242,7 +243,14 @@ fn score_all(
                     Mode::Predictor => &loss_pred,
                 };
                 let sc = effects::score(c, train, val, fit, loss0);
-                out.lock().expect("no panics while holding the lock")[jobs[i].0] = Some(sc);
+                let done = {
+                    let mut slots = out.lock().expect("no panics while holding the lock");
+                    slots[jobs[i].0] = Some(sc);
+                    slots.iter().filter(|r| r.is_some()).count()
+                };
+                if let Some(p) = progress {
+                    p(done, jobs.len());
+                }
             });
         }
     });
@@ -257,12 +265,27 @@ fn threshold() -> Threshold {
     }
 }
 
+/// A progress callback: (candidates scored, candidates of the step), called from the worker
+/// threads after each candidate refit.
+pub type Progress<'a> = &'a (dyn Fn(usize, usize) + Sync);
+
 /// Diagnose `model` with training data `train` and validation data `val`.
 pub fn diagnose(
     model: &ModelFile,
     train: &Dataset,
     val: &Dataset,
     opts: &Options,
+) -> Result<Outcome, DiagnoseError> {
+    diagnose_with_progress(model, train, val, opts, None)
+}
+
+/// [`diagnose`], reporting the candidate refits of each step to `progress`.
+pub fn diagnose_with_progress(
+    model: &ModelFile,
+    train: &Dataset,
+    val: &Dataset,
+    opts: &Options,
+    progress: Option<Progress<'_>>,
 ) -> Result<Outcome, DiagnoseError> {
     let mut notes = Vec::new();
     let mut spec = Spec::from_model(model, &mut notes)?;
@@ -347,7 +370,15 @@ pub fn diagnose(
         };
         let (cands, na) = candidates(&ctx);
         let tried = cands.len();
-        let scored = score_all(cands, train, val, &current.fit, &base_eval, opts.threads);
+        let scored = score_all(
+            cands,
+            train,
+            val,
+            &current.fit,
+            &base_eval,
+            opts.threads,
+            progress,
+        );
         let (free, one) = if step_no == 1 {
             (free0.clone(), one0.clone())
         } else {

@@ -289,8 +289,9 @@ fn draw_panel(p: &Panel, ox: f64, oy: f64, s: &mut String) {
     }
 }
 
-fn write_svg(path: &Path, panels: &[Panel], cols: usize) -> Result<(), DataError> {
-    let cols = cols.max(1);
+fn render_svg(panels: &[Panel], cols: usize) -> String {
+    // a figure is as wide as the panels it has (a single panel is not drawn on a two-wide canvas)
+    let cols = cols.min(panels.len()).max(1);
     let rows = panels.len().div_ceil(cols).max(1);
     let mut s = String::new();
     let _ = writeln!(
@@ -304,7 +305,7 @@ fn write_svg(path: &Path, panels: &[Panel], cols: usize) -> Result<(), DataError
         draw_panel(p, W * (i % cols) as f64, H * (i / cols) as f64, &mut s);
     }
     s.push_str("</svg>\n");
-    write_atomic(path, s.as_bytes())
+    s
 }
 
 fn series(x: Vec<f64>, y: Vec<f64>, color: &'static str, label: &str, kind: Kind) -> Series {
@@ -321,6 +322,17 @@ fn series(x: Vec<f64>, y: Vec<f64>, color: &'static str, label: &str, kind: Kind
 /// Write every picture of `res` into `dir`; returns the files written.
 pub fn write_all(dir: &Path, res: &Outcome) -> Result<Vec<PathBuf>, DataError> {
     let mut written = Vec::new();
+    for (path, text) in render_all(dir, res) {
+        write_atomic(&path, text.as_bytes())?;
+        written.push(path);
+    }
+    Ok(written)
+}
+
+/// The figures [`write_all`] writes, as (path in `dir`, SVG text), without writing them
+/// (so that a command can write them together with its other outputs).
+pub fn render_all(dir: &Path, res: &Outcome) -> Vec<(PathBuf, String)> {
+    let mut figures = Vec::new();
     let be = &res.before_eval;
     let (n, l) = (be.y.nrows(), be.y.ncols());
     let show = n.min(300);
@@ -359,9 +371,7 @@ pub fn write_all(dir: &Path, res: &Outcome) -> Result<Vec<PathBuf>, DataError> {
         }
         panels.push(p);
     }
-    let f = dir.join("fit.svg");
-    write_svg(&f, &panels, 1)?;
-    written.push(f);
+    figures.push((dir.join("fit.svg"), render_svg(&panels, 1)));
     // 2. residual autocorrelation
     let mut panels = Vec::new();
     for (rep, name) in [
@@ -389,9 +399,7 @@ pub fn write_all(dir: &Path, res: &Outcome) -> Result<Vec<PathBuf>, DataError> {
             panels.push(p);
         }
     }
-    let f = dir.join("autocorrelation.svg");
-    write_svg(&f, &panels, 2)?;
-    written.push(f);
+    figures.push((dir.join("autocorrelation.svg"), render_svg(&panels, 2)));
     // 3. cross-correlations
     let mut panels = Vec::new();
     for c in &res.report.residual.free_run.cross {
@@ -425,9 +433,7 @@ pub fn write_all(dir: &Path, res: &Outcome) -> Result<Vec<PathBuf>, DataError> {
         panels.push(p);
     }
     if !panels.is_empty() {
-        let f = dir.join("cross-correlation.svg");
-        write_svg(&f, &panels, 2)?;
-        written.push(f);
+        figures.push((dir.join("cross-correlation.svg"), render_svg(&panels, 2)));
     }
     // 4. spectrum
     let mut panels = Vec::new();
@@ -479,9 +485,7 @@ pub fn write_all(dir: &Path, res: &Outcome) -> Result<Vec<PathBuf>, DataError> {
         ));
         panels.push(p);
     }
-    let f = dir.join("spectrum.svg");
-    write_svg(&f, &panels, 1)?;
-    written.push(f);
+    figures.push((dir.join("spectrum.svg"), render_svg(&panels, 1)));
     // 5. singular values
     let (a, b) = &res.singular_values;
     if !a.is_empty() {
@@ -503,11 +507,9 @@ pub fn write_all(dir: &Path, res: &Outcome) -> Result<Vec<PathBuf>, DataError> {
                 Kind::Line,
             ));
         }
-        let f = dir.join("singular-values.svg");
-        write_svg(&f, &[p], 1)?;
-        written.push(f);
+        figures.push((dir.join("singular-values.svg"), render_svg(&[p], 1)));
     }
-    Ok(written)
+    figures
 }
 
 fn residual_col(res: &Outcome, mode: Mode, j: usize) -> Vec<f64> {

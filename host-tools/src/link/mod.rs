@@ -262,8 +262,9 @@ type Frame = Result<(u32, Reply), ErrorCode>;
 pub struct LinkOptions {
     /// Wait for a reply this long before retransmitting.
     pub timeout: Duration,
-    /// Wait this long for the first reply of a session (a QEMU pseudo-terminal can hold
-    /// the first bytes for about a second).
+    /// Wait this long for the first reply of a session, on its first transmission only (a
+    /// QEMU pseudo-terminal can hold the first bytes for about a second); retransmissions
+    /// wait `timeout`.
     pub first_timeout: Duration,
     /// Retransmissions per request before giving up.
     pub retries: u32,
@@ -430,7 +431,9 @@ impl<P: Read + Write> Link<P> {
             self.port.write_all(&frame)?;
             self.port.flush()?;
             self.stats.bytes_sent += frame.len() as u64;
-            let wait = if self.answered {
+            // the longer first wait is for the first transmission of a session only: a silent
+            // port costs first_timeout + retries x timeout, not (retries + 1) x first_timeout
+            let wait = if self.answered || attempt > 0 {
                 self.opts.timeout
             } else {
                 self.opts.first_timeout
