@@ -1,0 +1,75 @@
+"""lpvid.arx and lpvid.diagnose, and the notebook example."""
+
+import os
+import runpy
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+
+import lpvid
+from conftest import FIXTURES, ROOT, rel_diff
+
+SMART = next((Path(c) / "smart-rotor-370rpm.csv" for c in
+              (os.environ.get("LPVID_DATA"), ROOT.parent / "shared" / "data", "/work/shared/data")
+              if c and (Path(c) / "smart-rotor-370rpm.csv").is_file()), None)
+
+
+def test_arx_matches_the_cli(cli, tmp_path, in_root):
+    out = tmp_path / "arx.json"
+    cli("arx", "--train", "fixtures/b6-train.csv", "--calib", "fixtures/b6-calib.csv",
+        "--na", "2", "--nb", "1", "--ng", "1", "--out", out)
+    m = lpvid.arx("fixtures/b6-train.csv", calib="fixtures/b6-calib.csv", na=2, nb=1, ng=1)
+    assert m.kind == "lpv-arx" and m.order is None
+    assert m.to_json() == out.read_text()
+    assert m.a.shape == (2, 2) and m.b.shape == (1, 2, 2)
+    ls = lpvid.arx(pd.read_csv(FIXTURES / "b6-train.csv"), na=2, nb=1, ng=1, estimator="ls",
+                   val=pd.read_csv(FIXTURES / "b6-val.csv"))
+    assert ls.fit["estimator"] == "ls" and ls.val_score is not None
+    assert ls.validate(FIXTURES / "b6-val.csv").vaf_mean == pytest.approx(ls.val_score.vaf_mean)
+    with pytest.raises(lpvid.LpvidError, match="estimator"):
+        lpvid.arx(FIXTURES / "b6-train.csv", na=2, nb=1, ng=1, estimator="magic")
+
+
+def test_diagnose_report_objects():
+    m = lpvid.pbsid(FIXTURES / "b2-train.csv", past=3)
+    rep = lpvid.diagnose(m, FIXTURES / "b2-train.csv", FIXTURES / "b2-val.csv", fix=False)
+    assert isinstance(rep.before, lpvid.Score) and rep.after is None
+    assert rep.model.to_json() == m.to_json()
+    assert "Stopped" in repr(rep) or "nothing" in repr(rep)
+    assert "<table>" in rep._repr_html_()
+    with pytest.raises(lpvid.LpvidError, match="lpvid.Model"):
+        lpvid.diagnose("model.json", FIXTURES / "b2-train.csv", FIXTURES / "b2-val.csv")
+    val = pd.read_csv(FIXTURES / "b2-val.csv").drop(columns=["p1"])
+    with pytest.raises(lpvid.DataError, match="p1"):
+        lpvid.diagnose(m, FIXTURES / "b2-train.csv", val)
+
+
+@pytest.mark.skipif(SMART is None, reason="smart rotor data (../shared/data) absent")
+def test_diagnose_finds_and_fixes_on_the_smart_rotor():
+    df = lpvid.read_csv(SMART)
+    train, val = df.iloc[:5000], df.iloc[5000:]
+    m = lpvid.pbsid(train, past=8)
+    rep = lpvid.diagnose(m, train, val, fix=True)
+    assert rep.findings, rep.text
+    f = rep.findings[0]
+    assert f.effect and f.detail and f.evidence and 0 < f.explained <= 1
+    assert rep.applied and rep.after_one_step is not None
+    assert rep.after_one_step.vaf_mean > rep.before_one_step.vaf_mean
+    assert rep.model.order > m.order
+
+
+def test_notebook_example_runs(tmp_path):
+    script = ROOT / "host-tools/python/examples/smart_rotor_notebook.py"
+    r = subprocess.run([sys.executable, str(script), str(tmp_path)], capture_output=True,
+                       text=True, timeout=600)
+    assert r.returncode == 0, r.stdout + r.stderr
+    if SMART is None:
+        assert "skipped" in r.stdout
+        return
+    for name in ("validation.png", "singular_values.png", "residual_autocorrelation.png",
+                 "smart-rotor-370.json"):
+        assert (tmp_path / name).stat().st_size > 0, name
