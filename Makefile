@@ -6,12 +6,12 @@
 # qemu-system-arm: the firmware's Cortex-M4F board (mps2-an386) for make device-test.
 DEB_PACKAGES := pkg-config libopenblas-dev qemu-system-arm
 
-.PHONY: demo test setup check-fmt clippy core-thumb host-lib test-all bench device-test
+.PHONY: demo test setup check-fmt clippy core-thumb host-lib test-all bench device-test python-test
 
 demo: setup
 	cargo run --release -p lpvid-host --bin lpvid -- demo
 
-test: setup check-fmt clippy core-thumb host-lib test-all device-test
+test: setup check-fmt clippy core-thumb host-lib test-all device-test python-test
 
 setup:
 	bash scripts/setup.sh $(DEB_PACKAGES)
@@ -50,6 +50,11 @@ test-all:
 # `lpvid device`, pull the statistics, compare with the file-based fit (scripts/device-test.sh).
 device-test: setup
 	bash scripts/device-test.sh
+
+# The Python package (host-tools/python): pip install of the path into target/pyenv, then
+# its pytest suite (model round trip with the CLI, Dask equality on a 2-process cluster).
+python-test:
+	bash scripts/python-test.sh
 
 bench:
 	cargo bench --workspace
