@@ -1,6 +1,9 @@
-//! Theorem 10 of the kernel paper (section 5) for every pair of windows at once: the batch
-//! form of `lpvid::kernel::theorem10`, organised so that the dual kernel Z^T Z + U^T U of
-//! (19) and the shifted kernels of eq. (25) cost O(N^2 p) vectorised multiply-adds.
+//! Theorem 10 of the kernel paper (`papers/lpv-pbsid-kernel-automatica2009.md`, section 5.2)
+//! for every pair of windows at once: the batch form of `lpvid::kernel::theorem10` and of
+//! `lpvid::kernel::shifted_kernel` (eq. (25)), organised so that the dual kernel
+//! Z^T Z + U^T U of (19) and the shifted kernels of eq. (25) cost O(N^2 p) vectorised
+//! multiply-adds. This is the host's one evaluation of both: [`crate::pbsid::dual_kernel_matrix`]
+//! and [`crate::pbsid::dual_gamma_kz_matrix`] call it.
 //!
 //! Lemma 9 writes an entry as sums of products of the inner products mu_a^T mu_b and
 //! z_a^T z_b. For a fixed window b those products are needed at samples b, ..., b+p-1 only,
@@ -88,9 +91,10 @@ impl KernelSweep {
     }
 
     /// Theorem 10 between the windows starting at s = s0, ..., s0 + len - 1 (s may be
-    /// negative) and window `b`: after the step for t (t = p-1 down to 0) `visit(t, ks)`
-    /// sees ks[s - s0] = theorem10(slab, s, slab, b, t, p), the kernel of row block t + 1
-    /// of eq. (25) (t = 0: Z^T Z). Entries whose window reaches before sample 0 at step t
+    /// negative) and window `b` (kernel paper, Theorem 10 and eq. (25)): after the step for t
+    /// (t = p-1 down to 0) `visit(t, ks)` sees ks[s - s0] = theorem10(slab, s, slab, b, t, p)
+    /// = shifted_kernel(slab, s + t, slab, b, t + 1, p), the kernel of row block t + 1 of
+    /// eq. (25) (t = 0: Z^T Z). Entries whose window reaches before sample 0 at step t
     /// (s + t < 0) are left undefined there; no row block uses them.
     ///
     /// Needs b + p <= number of samples.
@@ -156,24 +160,30 @@ pub fn dot4(a: &[f64], b: &[f64]) -> f64 {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use lpvid::kernel::theorem10;
+    use lpvid::kernel::{shifted_kernel, theorem10};
 
+    /// Samples [u (r), y (l), 1, p (m - 1)] of a small deterministic record.
+    fn record(r: usize, l: usize, m: usize, n: usize) -> Vec<f64> {
+        let w = r + l + m;
+        (0..n * w)
+            .map(|i| {
+                let (k, j) = (i / w, i % w);
+                if j == r + l {
+                    1.0
+                } else {
+                    ((k * 13 + j * 7) % 17) as f64 / 8.0 - 1.0 + 0.1 * (k as f64 * 0.9).sin()
+                }
+            })
+            .collect()
+    }
+
+    /// Every entry the sweep gives equals the core's per-entry functions: Theorem 10 with
+    /// its shifted start, and eq. (25) by `shifted_kernel` (row block t + 1).
     #[test]
-    fn sweep_equals_theorem10_entry_by_entry() {
+    fn sweep_equals_theorem10_and_shifted_kernel_entry_by_entry() {
         let (r, l, m, p) = (1, 2, 3, 4);
         let n = 23;
-        let mut data = Vec::new();
-        for k in 0..n {
-            let f = k as f64;
-            data.extend([
-                (0.7 * f).sin(),
-                (1.3 * f).cos(),
-                0.2 * f - 1.0,
-                1.0,
-                (0.4 * f).sin(),
-                0.1 * f - 0.5,
-            ]);
-        }
+        let data = record(r, l, m, n);
         let slab = Slab::new(&data, r, l, m).unwrap();
         let mut sw = KernelSweep::new(&slab, p);
         let s0 = -(p as isize - 1);
@@ -190,6 +200,12 @@ mod tests {
                     assert!(
                         (e - k).abs() <= 1e-12 * (1.0 + e.abs()),
                         "{b} {s} {t}: {e} {k}"
+                    );
+                    let a = (s + t as isize) as usize;
+                    let e25 = shifted_kernel(&slab, a, &slab, b, t + 1, p);
+                    assert!(
+                        (e25 - k).abs() <= 1e-12 * (1.0 + e25.abs()),
+                        "eq. (25) {b} {a} {t}: {e25} {k}"
                     );
                 }
             });

@@ -1,12 +1,26 @@
 //! Dense linear algebra the host needs beyond nalgebra's basics: a fast symmetric
 //! eigendecomposition (faer, blocked and vectorised — nalgebra's is an order of magnitude
-//! slower at the sizes of problem (13)), pseudo-inverse least squares and helpers.
+//! slower at the sizes of problem (13)), pseudo-inverse least squares and helpers. No paper
+//! equation lives here: these are the numerical tools the equations of [`crate::pbsid`],
+//! [`crate::observer`] and [`crate::diagnose`] are solved with.
 
 use nalgebra::{DMatrix, DVector};
 
+/// Why a dense linear-algebra step failed.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum LinalgError {
+    /// faer's symmetric eigendecomposition failed (e.g. it did not converge); faer's own
+    /// reason in words.
+    #[error("symmetric eigendecomposition failed: {0}")]
+    Eigen(String),
+    /// The implicit QL iteration of [`Tridiagonal::eigen_projection`] did not converge.
+    #[error("tridiagonal QL did not converge")]
+    TridiagonalQl,
+}
+
 /// Eigendecomposition of a symmetric matrix: eigenvalues in DEScending order and the
 /// matching orthonormal eigenvectors as columns.
-pub fn sym_eig(a: &DMatrix<f64>) -> Result<(Vec<f64>, DMatrix<f64>), String> {
+pub fn sym_eig(a: &DMatrix<f64>) -> Result<(Vec<f64>, DMatrix<f64>), LinalgError> {
     let n = a.nrows();
     if n == 0 {
         return Ok((Vec::new(), DMatrix::zeros(0, 0)));
@@ -14,7 +28,7 @@ pub fn sym_eig(a: &DMatrix<f64>) -> Result<(Vec<f64>, DMatrix<f64>), String> {
     let m = faer::Mat::<f64>::from_fn(n, n, |i, j| 0.5 * (a[(i, j)] + a[(j, i)]));
     let eig = m
         .self_adjoint_eigen(faer::Side::Lower)
-        .map_err(|e| format!("symmetric eigendecomposition failed: {e:?}"))?;
+        .map_err(|e| LinalgError::Eigen(format!("{e:?}")))?;
     let s = eig.S();
     let u = eig.U();
     let vals: Vec<f64> = (0..n).rev().map(|i| s[i]).collect();
@@ -29,7 +43,7 @@ pub fn min_norm_from_normal(
     gram: &DMatrix<f64>,
     cross: &DMatrix<f64>,
     rel_tol: f64,
-) -> Result<(DMatrix<f64>, usize), String> {
+) -> Result<(DMatrix<f64>, usize), LinalgError> {
     let (vals, vecs) = sym_eig(gram)?;
     let vmax = vals.first().copied().unwrap_or(0.0).max(0.0);
     let tol = vmax * rel_tol;
@@ -224,7 +238,10 @@ impl Tridiagonal {
     /// Eigenvalues of T (= of A) in descending order and V^T c for `c` given in the
     /// tridiagonal coordinates (row i: the coordinates along eigenvector i), by implicit QL
     /// with Wilkinson shifts whose rotations are applied to the columns of c only.
-    pub fn eigen_projection(&self, c: &DMatrix<f64>) -> Result<(Vec<f64>, DMatrix<f64>), String> {
+    pub fn eigen_projection(
+        &self,
+        c: &DMatrix<f64>,
+    ) -> Result<(Vec<f64>, DMatrix<f64>), LinalgError> {
         let n = self.n;
         let k = c.ncols();
         assert_eq!(c.nrows(), n);
@@ -255,7 +272,7 @@ impl Tridiagonal {
                 }
                 iter += 1;
                 if iter > 60 {
-                    return Err("tridiagonal QL did not converge".into());
+                    return Err(LinalgError::TridiagonalQl);
                 }
                 let mut g = (d[l + 1] - d[l]) / (2.0 * e[l]);
                 let mut r = g.hypot(1.0);

@@ -1,8 +1,65 @@
 //! The LPV state-space model in numbers (DESIGN.md section 5, type `lpv-ss`), its free-run
-//! simulation and its one-step-ahead predictor:
+//! simulation and its one-step-ahead predictor (kernel paper,
+//! `papers/lpv-pbsid-kernel-automatica2009.md`, eq. (1)-(2) in innovation form, the
+//! predictor of section 2; sparse paper, `papers/lpv-pbsid-sparse-bpdn-hinf-observer.md`,
+//! eq. (1)-(2)):
 //! x_{k+1} = sum_i mu_k^(i) (A^(i) x_k + B^(i) u_k + K^(i) e_k),  y_k = C(mu_k) x_k + D(mu_k) u_k + e_k.
 
 use nalgebra::{DMatrix, DVector};
+
+/// Matrices of an [`LpvSs`] whose shapes do not fit together (n from A, r from B, l from C,
+/// m from the number of A's).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, thiserror::Error)]
+pub enum ShapeError {
+    /// A^(i) are not m matrices of n x n.
+    #[error("A must be {m} matrices of {n}x{n}")]
+    A {
+        /// Local models.
+        m: usize,
+        /// States.
+        n: usize,
+    },
+    /// B^(i) are not m matrices of n x r.
+    #[error("B must be {m} matrices of {n}x{r}")]
+    B {
+        /// Local models.
+        m: usize,
+        /// States.
+        n: usize,
+        /// Inputs.
+        r: usize,
+    },
+    /// K^(i) are not m matrices of n x l.
+    #[error("K must be {m} matrices of {n}x{l}")]
+    K {
+        /// Local models.
+        m: usize,
+        /// States.
+        n: usize,
+        /// Outputs.
+        l: usize,
+    },
+    /// C is not one or m matrices of l x n.
+    #[error("C must be one or {m} matrices of {l}x{n}")]
+    C {
+        /// Local models.
+        m: usize,
+        /// Outputs.
+        l: usize,
+        /// States.
+        n: usize,
+    },
+    /// D is not one or m matrices of l x r.
+    #[error("D must be one or {m} matrices of {l}x{r}")]
+    D {
+        /// Local models.
+        m: usize,
+        /// Outputs.
+        l: usize,
+        /// Inputs.
+        r: usize,
+    },
+}
 
 /// Signals as the identification sees them: one row per sample.
 #[derive(Debug, Clone, PartialEq)]
@@ -86,27 +143,33 @@ impl LpvSs {
     }
 
     /// Check that the matrix shapes agree with each other.
-    pub fn check(&self) -> Result<(), String> {
+    pub fn validate(&self) -> Result<(), ShapeError> {
         let (n, r, l, m) = (self.n(), self.r(), self.l(), self.m());
         let ok = |v: &[DMatrix<f64>], rows, cols, counts: &[usize]| {
             counts.contains(&v.len()) && v.iter().all(|x| x.nrows() == rows && x.ncols() == cols)
         };
         if !ok(&self.a, n, n, &[m]) {
-            return Err(format!("A must be {m} matrices of {n}x{n}"));
+            return Err(ShapeError::A { m, n });
         }
         if !ok(&self.b, n, r, &[m]) {
-            return Err(format!("B must be {m} matrices of {n}x{r}"));
+            return Err(ShapeError::B { m, n, r });
         }
         if !ok(&self.k, n, l, &[m]) {
-            return Err(format!("K must be {m} matrices of {n}x{l}"));
+            return Err(ShapeError::K { m, n, l });
         }
         if !ok(&self.c, l, n, &[1, m]) {
-            return Err(format!("C must be one or {m} matrices of {l}x{n}"));
+            return Err(ShapeError::C { m, l, n });
         }
         if !ok(&self.d, l, r, &[1, m]) {
-            return Err(format!("D must be one or {m} matrices of {l}x{r}"));
+            return Err(ShapeError::D { m, l, r });
         }
         Ok(())
+    }
+
+    /// [`LpvSs::validate`] with the error as its message, for the callers that still take
+    /// text (`model.rs` locates the matrix from it, `link` wraps it in a protocol error).
+    pub fn check(&self) -> Result<(), String> {
+        self.validate().map_err(|e| e.to_string())
     }
 
     /// Free-run simulation from x0 = 0 driven by the inputs and scheduling of `sig` (its

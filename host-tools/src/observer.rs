@@ -71,8 +71,8 @@ use clarabel::solver::{
 use nalgebra::{DMatrix, DVector};
 use serde_json::{json, Value};
 
-use crate::linalg::{spectral_radius, sym_eig};
-use crate::lpvss::{scheduled, LpvSs, Signals};
+use crate::linalg::{spectral_radius, sym_eig, LinalgError};
+use crate::lpvss::{scheduled, LpvSs, ShapeError, Signals};
 
 /// Default strictness margin delta of the LMIs (normalised units, see the module docs).
 pub const DEFAULT_MARGIN: f64 = 1e-6;
@@ -84,12 +84,84 @@ pub const DEFAULT_GRID: usize = 1001;
 /// Largest total number of grid points of the certificate.
 pub const MAX_GRID_POINTS: usize = 10_000;
 
-/// Why an observer design was not made, in words.
+/// Why an observer design, a scheduling box or a stability report was not made. The text
+/// of each variant is the message `lpvid pbsid` / `lpvid stability` print.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 pub enum ObserverError {
-    /// The model or data do not allow the design.
+    /// The model's matrices do not fit together.
     #[error("H-infinity observer: {0}")]
-    Input(String),
+    Model(#[from] ShapeError),
+    /// The state sequence has another dimension than the model.
+    #[error("H-infinity observer: the state sequence has {rows} rows, the model {states} states")]
+    StateDimension {
+        /// Rows of the state sequence.
+        rows: usize,
+        /// The model's order n.
+        states: usize,
+    },
+    /// The data's inputs, outputs or scheduling signals differ from the model's.
+    #[error("H-infinity observer: the data's channels do not match the model")]
+    Channels,
+    /// Too few residual columns for (25), or states longer than the data.
+    #[error("H-infinity observer: {columns} residual columns from {samples} samples and past window {past}: too few, or the states do not match the data")]
+    ResidualColumns {
+        /// Residual columns (states - 1).
+        columns: usize,
+        /// Samples in the data.
+        samples: usize,
+        /// Past window p.
+        past: usize,
+    },
+    /// A fit from statistics has no state sequence to take the residuals (25) from.
+    #[error("H-infinity observer: no state sequence (a fit from statistics): the residuals (25) need the states")]
+    NoStates,
+    /// NaN or infinity in the named quantity.
+    #[error("H-infinity observer: {0}")]
+    NonFinite(&'static str),
+    /// A least-squares step failed (`step`: which one; `reason`: nalgebra's).
+    #[error("H-infinity observer: {step}: {reason}")]
+    LeastSquares {
+        /// "least squares (24)" or "state alignment".
+        step: &'static str,
+        /// Why.
+        reason: &'static str,
+    },
+    /// The state alignment's metric is not positive definite.
+    #[error(
+        "H-infinity observer: state alignment: the {0} has no positive definite second moment"
+    )]
+    SecondMoment(&'static str),
+    /// The states do not determine the refined model's basis.
+    #[error("H-infinity observer: the state sequence does not determine the refined model's basis (rank-deficient alignment)")]
+    AlignmentRank,
+    /// An eigendecomposition failed.
+    #[error("H-infinity observer: {0}")]
+    Linalg(#[from] LinalgError),
+    /// [Q S; S^T R] is zero: an exact fit leaves (30) without R > 0.
+    #[error(
+        "H-infinity observer: the residual covariance is zero (an exact fit): (30) needs R > 0"
+    )]
+    ZeroNoise,
+    /// R is singular (its smallest normalised eigenvalue).
+    #[error("H-infinity observer: the output residual covariance R is singular (smallest eigenvalue {0:.3e} of the normalised R): (30) needs R > 0")]
+    SingularR(f64),
+    /// C or D depend on the scheduling.
+    #[error("H-infinity observer: LMI (30) needs a parameter-independent output equation (one C and one D)")]
+    ScheduledOutput,
+    /// The box has another number of scheduling signals than the model.
+    #[error("H-infinity observer: the scheduling box has {box_signals} signals, the model {model_signals}")]
+    BoxSignals {
+        /// Signals of the box.
+        box_signals: usize,
+        /// Scheduling signals of the model.
+        model_signals: usize,
+    },
+    /// Q or R have other dimensions than the model.
+    #[error("H-infinity observer: noise covariances do not match the model")]
+    NoiseDimension,
+    /// The strictness margin is not positive and finite.
+    #[error("H-infinity observer: the margin must be positive, got {0}")]
+    Margin(f64),
     /// The LMI problem (30) has no solution (solver certificate of infeasibility).
     #[error(
         "H-infinity observer: the LMI problem (30) is infeasible over the scheduling box ({0})"
@@ -98,6 +170,49 @@ pub enum ObserverError {
     /// The solver stopped without a solution.
     #[error("H-infinity observer: the SDP solver failed ({0})")]
     SolverFailed(String),
+    /// A `NAME=LO:HI` scheduling range without `=`.
+    #[error("scheduling range '{0}': expected NAME=LO:HI, e.g. p1=-0.8:1.2")]
+    RangeSyntax(String),
+    /// A scheduling range for a signal the model does not have.
+    #[error(
+        "scheduling range '{spec}': the model has no scheduling signal '{name}' (it has: {known})"
+    )]
+    RangeSignal {
+        /// The range as given.
+        spec: String,
+        /// The unknown name.
+        name: String,
+        /// The model's scheduling signals, comma-separated ("none" for an LTI model).
+        known: String,
+    },
+    /// A scheduling range without `LO:HI` after `=`.
+    #[error("scheduling range '{0}': expected LO:HI after '='")]
+    RangeBounds(String),
+    /// A bound that is not a finite number.
+    #[error("scheduling range '{spec}': '{value}' is not a finite number")]
+    RangeNumber {
+        /// The range as given.
+        spec: String,
+        /// The bound as given.
+        value: String,
+    },
+    /// LO > HI.
+    #[error("scheduling range '{0}': lower bound above upper bound")]
+    RangeOrder(String),
+    /// The stability report got another number of scheduling names than the model has.
+    #[error("the model has {signals} scheduling signals but {names} names")]
+    SchedulingNames {
+        /// The model's scheduling signals s.
+        signals: usize,
+        /// Names given.
+        names: usize,
+    },
+    /// Neither data, nor the model's record, nor a range give a signal's operating range.
+    #[error("no operating range for scheduling signal {0}: give --data or --range {0}=LO:HI")]
+    NoOperatingRange(String),
+    /// The model's matrices do not fit together (the stability report's check).
+    #[error(transparent)]
+    Shape(ShapeError),
     /// The solver returned a point our own eigenvalue check rejects.
     #[error(
         "H-infinity observer: the solver's solution fails the independent eigenvalue check ({0})"
@@ -163,13 +278,16 @@ pub fn residual_model(
         }
     }
     if !phi.iter().chain(tgt.iter()).all(|v| v.is_finite()) {
-        return Err(ObserverError::Input("non-finite states or data".into()));
+        return Err(ObserverError::NonFinite("non-finite states or data"));
     }
     let svd = phi.svd(true, true);
     let smax = svd.singular_values.max();
     let sol = svd
         .solve(&tgt, 1e-12 * smax)
-        .map_err(|e| ObserverError::Input(format!("least squares (24): {e}")))?;
+        .map_err(|reason| ObserverError::LeastSquares {
+            step: "least squares (24)",
+            reason,
+        })?;
     let solt = sol.transpose();
     let mut out = LpvSs {
         a: Vec::with_capacity(m),
@@ -194,25 +312,24 @@ fn residual_columns(
     states: &DMatrix<f64>,
     past: usize,
 ) -> Result<usize, ObserverError> {
-    model.check().map_err(ObserverError::Input)?;
+    model.validate()?;
     let (n, r, l, m) = (model.n(), model.r(), model.l(), model.m());
     if states.nrows() != n {
-        return Err(ObserverError::Input(format!(
-            "the state sequence has {} rows, the model {n} states",
-            states.nrows()
-        )));
+        return Err(ObserverError::StateDimension {
+            rows: states.nrows(),
+            states: n,
+        });
     }
     if sig.p.ncols() + 1 != m || sig.u.ncols() != r || sig.y.ncols() != l {
-        return Err(ObserverError::Input(
-            "the data's channels do not match the model".into(),
-        ));
+        return Err(ObserverError::Channels);
     }
     let cols = states.ncols().saturating_sub(1);
     if cols < 3 || past + cols > sig.len() {
-        return Err(ObserverError::Input(format!(
-            "{cols} residual columns from {} samples and past window {past}: too few, or the states do not match the data",
-            sig.len()
-        )));
+        return Err(ObserverError::ResidualColumns {
+            columns: cols,
+            samples: sig.len(),
+            past,
+        });
     }
     Ok(cols)
 }
@@ -241,8 +358,8 @@ pub fn noise_covariance(
         wv.view_mut((n, j), (l, 1)).copy_from(&v);
     }
     if !wv.iter().all(|v| v.is_finite()) {
-        return Err(ObserverError::Input(
-            "non-finite residuals (the model or states are not finite)".into(),
+        return Err(ObserverError::NonFinite(
+            "non-finite residuals (the model or states are not finite)",
         ));
     }
     let cov = &wv * wv.transpose() / (cols as f64 - 1.0);
@@ -286,12 +403,8 @@ pub fn align_states(
         sxx += &x * x.transpose();
     }
     let syy = sig.y.transpose() * &sig.y;
-    let inv_factor = |m: DMatrix<f64>, what: &str| -> Result<DMatrix<f64>, ObserverError> {
-        let bad = || {
-            ObserverError::Input(format!(
-                "state alignment: the {what} has no positive definite second moment"
-            ))
-        };
+    let inv_factor = |m: DMatrix<f64>, what: &'static str| -> Result<DMatrix<f64>, ObserverError> {
+        let bad = || ObserverError::SecondMoment(what);
         if !m.iter().all(|v| v.is_finite()) {
             return Err(bad());
         }
@@ -341,20 +454,20 @@ pub fn align_states(
         rhs.rows_mut(base + n, l).copy_from(&(&wy * ydu));
     }
     if !lhs.iter().chain(rhs.iter()).all(|v| v.is_finite()) {
-        return Err(ObserverError::Input("non-finite states or data".into()));
+        return Err(ObserverError::NonFinite("non-finite states or data"));
     }
     let svd = lhs.svd(true, true);
     let smax = svd.singular_values.max();
     let smin = svd.singular_values.min();
     if smin <= 1e-10 * smax {
-        return Err(ObserverError::Input(
-            "the state sequence does not determine the refined model's basis (rank-deficient alignment)"
-                .into(),
-        ));
+        return Err(ObserverError::AlignmentRank);
     }
     let t = svd
         .solve(&rhs, 0.0)
-        .map_err(|e| ObserverError::Input(format!("state alignment: {e}")))?;
+        .map_err(|reason| ObserverError::LeastSquares {
+            step: "state alignment",
+            reason,
+        })?;
     let t = DMatrix::from_column_slice(n, n, t.as_slice());
     Ok(t * states)
 }
@@ -371,10 +484,8 @@ pub fn hinf_observer(
     sbox: &SchedBox,
     opts: &HinfOptions,
 ) -> Result<(LpvSs, NoiseCov, HinfDesign), ObserverError> {
-    let (mut out, nc) = residual_model(model, sig, states, past)?;
-    let design = design_hinf(&out, &nc, sbox, opts)?;
-    out.k = design.k.clone();
-    Ok((out, nc, design))
+    let (out, nc) = residual_model(model, sig, states, past)?;
+    with_hinf_gains(out, nc, sbox, opts)
 }
 
 /// Section 3.4 for a model whose A, B, C, D were refined after the realization
@@ -394,10 +505,20 @@ pub fn hinf_observer_refined(
 ) -> Result<(LpvSs, NoiseCov, HinfDesign), ObserverError> {
     let aligned = align_states(model, sig, states, past)?;
     let nc = noise_covariance(model, sig, &aligned, past)?;
-    let design = design_hinf(model, &nc, sbox, opts)?;
-    let mut out = model.clone();
-    out.k = design.k.clone();
-    Ok((out, nc, design))
+    with_hinf_gains(model.clone(), nc, sbox, opts)
+}
+
+/// Eq. (30)-(31) for `model` and its noise `nc`: the certified design, and the model with
+/// K replaced by its gains.
+fn with_hinf_gains(
+    mut model: LpvSs,
+    nc: NoiseCov,
+    sbox: &SchedBox,
+    opts: &HinfOptions,
+) -> Result<(LpvSs, NoiseCov, HinfDesign), ObserverError> {
+    let design = design_hinf(&model, &nc, sbox, opts)?;
+    model.k = design.k.clone();
+    Ok((model, nc, design))
 }
 
 /// The operating region of the scheduling: a box, one interval per scheduling signal.
@@ -438,39 +559,44 @@ impl SchedBox {
     }
 
     /// Apply `name=lo:hi` overrides (several may be given, comma-separated or repeated).
-    pub fn apply_ranges(&mut self, specs: &[String]) -> Result<(), String> {
+    pub fn apply_ranges(&mut self, specs: &[String]) -> Result<(), ObserverError> {
         for spec in specs.iter().flat_map(|s| s.split(',')) {
             let spec = spec.trim();
             if spec.is_empty() {
                 continue;
             }
-            let (name, range) = spec.split_once('=').ok_or_else(|| {
-                format!("scheduling range '{spec}': expected NAME=LO:HI, e.g. p1=-0.8:1.2")
-            })?;
-            let j = self.names.iter().position(|n| n == name.trim()).ok_or_else(|| {
-                format!(
-                    "scheduling range '{spec}': the model has no scheduling signal '{}' (it has: {})",
-                    name.trim(),
-                    if self.names.is_empty() { "none".to_string() } else { self.names.join(", ") }
-                )
-            })?;
+            let (name, range) = spec
+                .split_once('=')
+                .ok_or_else(|| ObserverError::RangeSyntax(spec.to_string()))?;
+            let j = self
+                .names
+                .iter()
+                .position(|n| n == name.trim())
+                .ok_or_else(|| ObserverError::RangeSignal {
+                    spec: spec.to_string(),
+                    name: name.trim().to_string(),
+                    known: if self.names.is_empty() {
+                        "none".to_string()
+                    } else {
+                        self.names.join(", ")
+                    },
+                })?;
             let (a, b) = range
                 .split_once(':')
-                .ok_or_else(|| format!("scheduling range '{spec}': expected LO:HI after '='"))?;
+                .ok_or_else(|| ObserverError::RangeBounds(spec.to_string()))?;
             let parse = |v: &str| {
                 v.trim()
                     .parse::<f64>()
                     .ok()
                     .filter(|x| x.is_finite())
-                    .ok_or_else(|| {
-                        format!("scheduling range '{spec}': '{v}' is not a finite number")
+                    .ok_or_else(|| ObserverError::RangeNumber {
+                        spec: spec.to_string(),
+                        value: v.to_string(),
                     })
             };
             let (a, b) = (parse(a)?, parse(b)?);
             if a > b {
-                return Err(format!(
-                    "scheduling range '{spec}': lower bound above upper bound"
-                ));
+                return Err(ObserverError::RangeOrder(spec.to_string()));
             }
             self.lo[j] = a;
             self.hi[j] = b;
@@ -660,7 +786,7 @@ struct Normalised {
 }
 
 fn sym_fn(m: &DMatrix<f64>, f: impl Fn(f64) -> f64) -> Result<DMatrix<f64>, ObserverError> {
-    let (vals, vecs) = sym_eig(m).map_err(ObserverError::Input)?;
+    let (vals, vecs) = sym_eig(m)?;
     let d = DMatrix::from_diagonal(&DVector::from_iterator(
         vals.len(),
         vals.iter().map(|&v| f(v)),
@@ -678,22 +804,17 @@ fn min_eig(m: &DMatrix<f64>) -> f64 {
 fn normalise(nc: &NoiseCov) -> Result<Normalised, ObserverError> {
     let j = joint(nc);
     if !j.iter().all(|v| v.is_finite()) {
-        return Err(ObserverError::Input("non-finite noise covariance".into()));
+        return Err(ObserverError::NonFinite("non-finite noise covariance"));
     }
-    let (vals, _) = sym_eig(&j).map_err(ObserverError::Input)?;
+    let (vals, _) = sym_eig(&j)?;
     let c = vals.first().copied().unwrap_or(0.0);
     if c <= 0.0 || c.is_nan() {
-        return Err(ObserverError::Input(
-            "the residual covariance is zero (an exact fit): (30) needs R > 0".into(),
-        ));
+        return Err(ObserverError::ZeroNoise);
     }
     let r = &nc.r / c;
     let rmin = min_eig(&r);
     if rmin.is_nan() || rmin <= 1e-12 {
-        return Err(ObserverError::Input(format!(
-            "the output residual covariance R is singular (smallest eigenvalue {:.3e} of the normalised R): (30) needs R > 0",
-            rmin
-        )));
+        return Err(ObserverError::SingularR(rmin));
     }
     let r_inv = sym_fn(&r, |v| 1.0 / v)?;
     let r_half = sym_fn(&r, f64::sqrt)?;
@@ -1020,30 +1141,22 @@ pub fn design_hinf(
     sbox: &SchedBox,
     opts: &HinfOptions,
 ) -> Result<HinfDesign, ObserverError> {
-    model.check().map_err(ObserverError::Input)?;
+    model.validate()?;
     if model.c.len() != 1 || model.d.len() != 1 {
-        return Err(ObserverError::Input(
-            "LMI (30) needs a parameter-independent output equation (one C and one D)".into(),
-        ));
+        return Err(ObserverError::ScheduledOutput);
     }
     let (n, l, m) = (model.n(), model.l(), model.m());
     if sbox.dim() + 1 != m {
-        return Err(ObserverError::Input(format!(
-            "the scheduling box has {} signals, the model {}",
-            sbox.dim(),
-            m - 1
-        )));
+        return Err(ObserverError::BoxSignals {
+            box_signals: sbox.dim(),
+            model_signals: m - 1,
+        });
     }
     if nc.q.nrows() != n || nc.r.nrows() != l {
-        return Err(ObserverError::Input(
-            "noise covariances do not match the model".into(),
-        ));
+        return Err(ObserverError::NoiseDimension);
     }
     if !(opts.margin > 0.0 && opts.margin.is_finite()) {
-        return Err(ObserverError::Input(format!(
-            "the margin must be positive, got {}",
-            opts.margin
-        )));
+        return Err(ObserverError::Margin(opts.margin));
     }
     let c = &model.c[0];
     let nz = normalise(nc)?;
@@ -1366,7 +1479,7 @@ pub fn observer_step(
     names: &[String],
     req: &ObserverRequest,
     refined: bool,
-) -> Result<ObserverStep, String> {
+) -> Result<ObserverStep, ObserverError> {
     let mut sbox = SchedBox::from_signals(names, sig);
     sbox.apply_ranges(&req.ranges)?;
     let reference: Vec<f64> = (0..sig.p.ncols()).map(|j| sig.p.column(j).mean()).collect();
@@ -1375,10 +1488,7 @@ pub fn observer_step(
         let attempt = match states {
             Some(x) if refined => hinf_observer_refined(ls_model, sig, x, past, &sbox, &req.opts),
             Some(x) => hinf_observer(ls_model, sig, x, past, &sbox, &req.opts),
-            None => Err(ObserverError::Input(
-                "no state sequence (a fit from statistics): the residuals (25) need the states"
-                    .into(),
-            )),
+            None => Err(ObserverError::NoStates),
         };
         match attempt {
             Ok((m, nc, d)) => {
@@ -1527,14 +1637,14 @@ pub fn stability_report(
     fit: &Value,
     data: Option<&Signals>,
     ranges: &[String],
-) -> Result<StabilityReport, String> {
-    model.check()?;
+) -> Result<StabilityReport, ObserverError> {
+    model.validate().map_err(ObserverError::Shape)?;
     let s = model.m() - 1;
     if names.len() != s {
-        return Err(format!(
-            "the model has {s} scheduling signals but {} names",
-            names.len()
-        ));
+        return Err(ObserverError::SchedulingNames {
+            signals: s,
+            names: names.len(),
+        });
     }
     let rec = fit.get("scheduling");
     let (mut sbox, reference, reference_source) = match data {
@@ -1583,10 +1693,7 @@ pub fn stability_report(
     };
     sbox.apply_ranges(ranges)?;
     if let Some(j) = (0..s).find(|&j| !(sbox.lo[j].is_finite() && sbox.hi[j].is_finite())) {
-        return Err(format!(
-            "no operating range for scheduling signal {}: give --data or --range {}=LO:HI",
-            names[j], names[j]
-        ));
+        return Err(ObserverError::NoOperatingRange(names[j].clone()));
     }
     let mut reference = reference;
     for (j, r) in reference.iter_mut().enumerate() {
@@ -1649,6 +1756,18 @@ mod tests {
         for bad in ["p3=0:1", "p1=1:0", "p1=0", "p1", "p1=x:1", "p1=0:inf"] {
             assert!(two().apply_ranges(&[bad.into()]).is_err(), "{bad}");
         }
+        assert!(matches!(
+            two().apply_ranges(&["p3=0:1".into()]),
+            Err(ObserverError::RangeSignal { name, .. }) if name == "p3"
+        ));
+        assert_eq!(
+            two().apply_ranges(&["p1=1:0".into()]),
+            Err(ObserverError::RangeOrder("p1=1:0".into()))
+        );
+        assert!(matches!(
+            two().apply_ranges(&["p1".into()]),
+            Err(ObserverError::RangeSyntax(_))
+        ));
         // LTI: one vertex, the constant
         let e = SchedBox {
             names: vec![],

@@ -5,7 +5,33 @@
 
 use nalgebra::DMatrix;
 
-use crate::linalg::min_norm_from_normal;
+use crate::linalg::{min_norm_from_normal, LinalgError};
+
+/// Why a least-squares fit through the core's Gram failed.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum StatsError {
+    /// The core's Gram rejected the dimension or a row (e.g. a non-finite value).
+    #[error(transparent)]
+    Core(#[from] lpvid::Error),
+    /// The minimum-norm solve of the normal equations failed.
+    #[error(transparent)]
+    Linalg(#[from] LinalgError),
+}
+
+// The refits of [`super::refit`] report numerical failures as
+// `RefitError::Numerical` with the message; these keep their `?` working on the typed
+// errors until they get variants of their own.
+impl From<StatsError> for super::RefitError {
+    fn from(e: StatsError) -> Self {
+        super::RefitError::Numerical(e.to_string())
+    }
+}
+
+impl From<LinalgError> for super::RefitError {
+    fn from(e: LinalgError) -> Self {
+        super::RefitError::Numerical(e.to_string())
+    }
+}
 
 // ------------------------------------------------------------------------------------------
 // Distributions
@@ -487,7 +513,7 @@ pub fn moments(
     rows: usize,
     d: usize,
     mut row: impl FnMut(usize, &mut [f64]),
-) -> Result<(DMatrix<f64>, Vec<f64>), String> {
+) -> Result<(DMatrix<f64>, Vec<f64>), StatsError> {
     let mut buf = vec![0.0; d];
     let mut ss = vec![0.0; d];
     for k in 0..rows {
@@ -512,8 +538,7 @@ pub fn moments(
         for (v, s) in dst.iter_mut().zip(&scale) {
             *v *= s;
         }
-    })
-    .map_err(|e| e.to_string())?;
+    })?;
     Ok((DMatrix::from_fn(d, d, |i, j| g.get(i, j)), scale))
 }
 
@@ -525,7 +550,7 @@ pub fn solve_moments(
     scale: &[f64],
     regs: &[usize],
     tgts: &[usize],
-) -> Result<(DMatrix<f64>, Vec<f64>), String> {
+) -> Result<(DMatrix<f64>, Vec<f64>), StatsError> {
     let s_ff = DMatrix::from_fn(regs.len(), regs.len(), |i, j| s[(regs[i], regs[j])]);
     let s_ft = DMatrix::from_fn(tgts.len(), regs.len(), |i, j| s[(tgts[i], regs[j])]);
     let xs = if regs.is_empty() {
@@ -557,7 +582,7 @@ pub fn lstsq(
     nreg: usize,
     ntgt: usize,
     row: impl FnMut(usize, &mut [f64]),
-) -> Result<(DMatrix<f64>, Vec<f64>), String> {
+) -> Result<(DMatrix<f64>, Vec<f64>), StatsError> {
     let (s, scale) = moments(rows, nreg + ntgt, row)?;
     let regs: Vec<usize> = (0..nreg).collect();
     let tgts: Vec<usize> = (nreg..nreg + ntgt).collect();

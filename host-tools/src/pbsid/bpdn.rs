@@ -61,7 +61,45 @@ use lpvid::{PbsidDims, Samples, Slab};
 use nalgebra::DMatrix;
 
 use super::realize::{realize_from_states, states_from_gkz};
+use crate::linalg::LinalgError;
 use crate::lpvss::{LpvSs, Signals};
+
+/// Why the sparse estimation could not be made.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum BpdnError {
+    /// The explicit regressors would not fit in memory.
+    #[error("the sparse form needs {regressors} regressors x {windows} windows: too large; use a smaller past window")]
+    TooLarge {
+        /// Regressor length q (+ r with feedthrough).
+        regressors: usize,
+        /// Number of windows.
+        windows: usize,
+    },
+    /// The core rejected the dimensions or the solver's storage.
+    #[error(transparent)]
+    Core(#[from] lpvid::Error),
+    /// The coordinate-descent engine failed along the path.
+    #[error("group-lasso path failed: {0}")]
+    Path(lpvid::Error),
+    /// A path point's residual is NaN or infinite.
+    #[error("non-finite residual on the path")]
+    NonFiniteResidual,
+    /// The path produced no point to choose from.
+    #[error("empty lasso path")]
+    EmptyPath,
+    /// The regressors given to [`select_by_simulation`] are not those of its training record.
+    #[error("the regressors do not cover the training record")]
+    WindowMismatch,
+    /// No order is left to realize after the order limits.
+    #[error("no candidate order for BPDN-SV")]
+    NoCandidateOrder,
+    /// No path point could be realized at any candidate order.
+    #[error("no path point could be realized")]
+    NothingRealized,
+    /// The SVD (15) of a path point's Gamma K Z failed.
+    #[error(transparent)]
+    Linalg(#[from] LinalgError),
+}
 
 /// Regressors of windows laid out row-wise (row j = regressor j over the windows), with the
 /// Gram G = Phi Phi^T evaluated lazily: a column is computed on first use (O(q N)) and
@@ -82,13 +120,17 @@ impl LazyGram {
         slab: &Slab<'_, f64>,
         windows: &[usize],
         feedthrough: bool,
-    ) -> Result<(LazyGram, Vec<f64>), String> {
-        let q = dims.q().map_err(|e| e.to_string())?;
+    ) -> Result<(LazyGram, Vec<f64>), BpdnError> {
+        let q = dims.q()?;
         let qf = q + if feedthrough { dims.r } else { 0 };
         let n = windows.len();
-        let size = qf.checked_mul(n).filter(|&v| v <= 400_000_000).ok_or_else(|| {
-            format!("the sparse form needs {qf} regressors x {n} windows: too large; use a smaller past window")
-        })?;
+        let size = qf
+            .checked_mul(n)
+            .filter(|&v| v <= 400_000_000)
+            .ok_or(BpdnError::TooLarge {
+                regressors: qf,
+                windows: n,
+            })?;
         let mut rows = vec![0.0; size];
         let mut z = vec![0.0; q];
         let mut y = vec![0.0; dims.l * n];
@@ -242,10 +284,10 @@ pub fn select(
     rule: Rule,
     val: Option<(&LazyGram, &[f64])>,
     rss_unreg: f64,
-) -> Result<Selection, String> {
+) -> Result<Selection, BpdnError> {
     let q = id.q;
     let cross = id.cross(y_id, l);
-    let prob = Problem::new(id, &cross, l, Penalty::Group).map_err(|e| e.to_string())?;
+    let prob = Problem::new(id, &cross, l, Penalty::Group)?;
     // Algorithm 1 needs the path only approximately (the paper's SPGL1 steps stop early);
     // a 1e-7 relative max-change keeps each point cheap on strongly correlated columns.
     let settings = Settings {
@@ -254,8 +296,7 @@ pub fn select(
         n_lambda: 50,
         lambda_min_ratio: 1e-4,
     };
-    let mut engine = CoordinateDescent::new(l, q, vec![0.0; lpvid::lasso::work_len(l, q)])
-        .map_err(|e| e.to_string())?;
+    let mut engine = CoordinateDescent::new(l, q, vec![0.0; lpvid::lasso::work_len(l, q)])?;
     let mut theta = vec![0.0; l * q];
     let val_stats = val.map(|(g, y)| {
         let c = g.cross(y, l);
@@ -284,7 +325,7 @@ pub fn select(
                 Rule::Aic => id.residual(th, &cross, y_id.iter().map(|v| v * v).sum(), l),
             };
             if !score.is_finite() {
-                err_msg = Some("non-finite residual on the path".to_string());
+                err_msg = Some(BpdnError::NonFiniteResidual);
                 return ControlFlow::Break(());
             }
             match rule {
@@ -311,11 +352,11 @@ pub fn select(
             }
             ControlFlow::Continue(())
         })
-        .map_err(|e| format!("group-lasso path failed: {e}"))?;
+        .map_err(BpdnError::Path)?;
     if let Some(m) = err_msg {
         return Err(m);
     }
-    let (score, theta, lambda_abs, active, index) = best.ok_or("empty lasso path")?;
+    let (score, theta, lambda_abs, active, index) = best.ok_or(BpdnError::EmptyPath)?;
     let lambda = if lmax > 0.0 { lambda_abs / lmax } else { 0.0 };
     let reason = match rule {
         Rule::Sv => format!(
@@ -454,12 +495,12 @@ pub fn select_by_simulation(
     val: Option<&Slab<'_, f64>>,
     orders: &[usize],
     feedthrough: bool,
-) -> Result<SimSelection, String> {
+) -> Result<SimSelection, BpdnError> {
     let (r, l, m, p) = (dims.r, dims.l, dims.m(), dims.p);
     let q = g.q;
     let windows = g.n;
     if slab.len() != windows + p {
-        return Err("the regressors do not cover the training record".into());
+        return Err(BpdnError::WindowMismatch);
     }
     let train = slab_signals(slab, r, l);
     let scored = match val {
@@ -477,12 +518,12 @@ pub fn select_by_simulation(
         })
         .collect();
     if orders.is_empty() {
-        return Err("no candidate order for BPDN-SV".into());
+        return Err(BpdnError::NoCandidateOrder);
     }
-    let mut z_last = vec![0.0; dims.q().map_err(|e| e.to_string())?];
+    let mut z_last = vec![0.0; dims.q()?];
     write_pbsid_regressor(dims, slab, windows, &mut z_last);
     let cross = g.cross(y, l);
-    let prob = Problem::new(g, &cross, l, Penalty::Group).map_err(|e| e.to_string())?;
+    let prob = Problem::new(g, &cross, l, Penalty::Group)?;
     // Each point only has to rank well: a 1e-5 relative max-change (at most 100 sweeps)
     // gives the same choices on B2 as 1e-7 (mean VAF within 0.05 at p = 8, 12, 14) at less
     // than half the time.
@@ -492,8 +533,7 @@ pub fn select_by_simulation(
         n_lambda: 50,
         lambda_min_ratio: 1e-4,
     };
-    let mut engine = CoordinateDescent::new(l, q, vec![0.0; lpvid::lasso::work_len(l, q)])
-        .map_err(|e| e.to_string())?;
+    let mut engine = CoordinateDescent::new(l, q, vec![0.0; lpvid::lasso::work_len(l, q)])?;
     let mut theta = vec![0.0; l * q];
     // (score, simulation error, order, path index, lambda, active, theta, sv, states)
     type Best = (
@@ -520,7 +560,7 @@ pub fn select_by_simulation(
             let (sv, x) = match states_from_gkz(&gkz, windows) {
                 Ok(v) => v,
                 Err(e) => {
-                    err_msg = Some(e.0);
+                    err_msg = Some(BpdnError::from(e));
                     return ControlFlow::Break(());
                 }
             };
@@ -559,12 +599,12 @@ pub fn select_by_simulation(
             }
             ControlFlow::Continue(())
         })
-        .map_err(|e| format!("group-lasso path failed: {e}"))?;
+        .map_err(BpdnError::Path)?;
     if let Some(m) = err_msg {
         return Err(m);
     }
     let (_, v, order, index, lambda_abs, active, theta, sv, states) =
-        best.ok_or("no path point could be realized")?;
+        best.ok_or(BpdnError::NothingRealized)?;
     let lambda = if lmax > 0.0 { lambda_abs / lmax } else { 0.0 };
     let target = if val.is_some() {
         "validation data"

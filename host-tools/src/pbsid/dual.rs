@@ -87,7 +87,7 @@ pub(crate) fn selected_rows_states(
     Ok((sv, x, info))
 }
 
-/// Algorithm 3 (kernel selection): the dictionary of windows the core admits by its
+/// Kernel paper, Algorithm 3 (kernel selection, section 6.2): the dictionary of windows the core admits by its
 /// linear-dependence test (at most `max_rows`, tolerance relative to the mean k(w, w)).
 pub fn select_kernel_rows(
     dims: &PbsidDims,
@@ -98,7 +98,7 @@ pub fn select_kernel_rows(
 ) -> Result<(Vec<usize>, String), FitError> {
     let n = slab.len();
     if max_rows == 0 {
-        return Err(FitError("--kernel-rows must be at least 1".into()));
+        return Err(FitError::NoKernelRows);
     }
     let windows = n - dims.p;
     let mean_diag = (0..windows)
@@ -141,7 +141,8 @@ pub fn select_kernel_rows(
     Ok((rows, why))
 }
 
-/// The smallest period P <= N/3 with p_{k+P} = p_k for every k (to 1e-9 relative), if any.
+/// Kernel paper, section 6.1 (periodic scheduling): the smallest period P <= N/3 with
+/// p_{k+P} = p_k for every k (to 1e-9 relative), if any.
 pub fn detect_period(slab: &Slab<'_, f64>, s: usize) -> Option<usize> {
     let n = slab.len();
     if s == 0 {
@@ -161,10 +162,12 @@ pub fn detect_period(slab: &Slab<'_, f64>, s: usize) -> Option<usize> {
     })
 }
 
-/// Eq. (25): row block i of Gamma^p K^p Z is alpha sum_{j >= i} (Z^{i,j})^T Z^{1,j}. Entry
-/// (a, b) of that kernel is Theorem 10 between the window starting at a - i + 1 and window
-/// b, summed over t0 >= i - 1; one backward pass over t gives it for every i at once.
-/// Columns are windows b = 0..cols (a window needs only its p samples, not a target).
+/// Kernel paper, eq. (25); the batched form of `lpvid::kernel::shifted_kernel` over
+/// [`KernelSweep`]: row block i of Gamma^p K^p Z is alpha sum_{j >= i} (Z^{i,j})^T Z^{1,j}.
+/// Entry (a, b) of that kernel is `shifted_kernel(slab, a, slab, b, i, p)`, Theorem 10
+/// between the window starting at a - i + 1 and window b summed over t0 >= i - 1; one
+/// backward pass over t gives it for every i at once. Columns are windows b = 0..cols (a
+/// window needs only its p samples, not a target).
 pub fn dual_gamma_kz_matrix(
     dims: &PbsidDims,
     f: usize,
@@ -195,8 +198,9 @@ pub fn dual_gamma_kz_matrix(
     out
 }
 
-/// The dual kernel of (19), [Z^T Z + U^T U] over windows 0..nb (the U^T U term only with
-/// feedthrough), by Theorem 10 for all pairs ([`KernelSweep`]).
+/// Kernel paper, eq. (19) with Theorem 10: the dual kernel [Z^T Z + U^T U] over windows
+/// 0..nb (the U^T U term only with feedthrough), for all pairs by [`KernelSweep`] (the
+/// batched form of `lpvid::kernel::dual_kernel`).
 pub fn dual_kernel_matrix(
     slab: &Slab<'_, f64>,
     p: usize,
@@ -224,4 +228,50 @@ pub fn dual_kernel_matrix(
         }
     }
     g
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use lpvid::kernel::shifted_kernel;
+
+    /// Eq. (25) by the batched sweep equals alpha times the core's per-entry
+    /// `shifted_kernel`, row block by row block, including the successor window N - p.
+    #[test]
+    fn dual_gamma_kz_equals_core_shifted_kernel() {
+        let (r, l, s, p) = (1usize, 2usize, 1usize, 3usize);
+        let dims = PbsidDims::new(r, l, s, p).unwrap();
+        let m = dims.m();
+        let n = 19;
+        let w = r + l + m;
+        let rows: Vec<f64> = (0..n * w)
+            .map(|i| {
+                if i % w == r + l {
+                    1.0
+                } else {
+                    ((i * 29 % 31) as f64 / 15.0) - 1.0
+                }
+            })
+            .collect();
+        let slab = Slab::new(&rows, r, l, m).unwrap();
+        let nb = n - p;
+        let alpha = DMatrix::from_fn(l, nb, |j, a| ((j * nb + a) as f64 * 0.37).cos());
+        for f in [1, 2, p] {
+            let batched = dual_gamma_kz_matrix(&dims, f, &slab, &alpha, nb + 1);
+            for b in 0..=nb {
+                for i in 1..=f {
+                    for j in 0..l {
+                        let e: f64 = (0..nb)
+                            .map(|a| alpha[(j, a)] * shifted_kernel(&slab, a, &slab, b, i, p))
+                            .sum();
+                        let got = batched[((i - 1) * l + j, b)];
+                        assert!(
+                            (e - got).abs() <= 1e-12 * (1.0 + e.abs()),
+                            "f {f} block {i} output {j} window {b}: {e} vs {got}"
+                        );
+                    }
+                }
+            }
+        }
+    }
 }

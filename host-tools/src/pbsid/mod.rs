@@ -47,7 +47,9 @@ pub use error::FitError;
 pub use order::{select_order, FLOOR_FACTOR};
 pub use realize::{gamma_k, realize_from_states, realize_from_stats};
 pub use scaling::{unscale, Scaling};
-pub use settings::{BpdnScore, Order, PbsidFit, PbsidOptions, Reg, Solver, DEFAULT_SCHED_WEIGHT};
+pub use settings::{
+    BpdnScore, Order, PbsidFit, PbsidOptions, Reg, SettingError, Solver, DEFAULT_SCHED_WEIGHT,
+};
 
 use order::choose_order;
 use primal::{dense, primal_regression_svd};
@@ -56,16 +58,13 @@ use scaling::{scaled_rows, stat_scale_vector, ChannelSums};
 /// Check the options against the data size; returns the future window.
 fn check_options(dims: &PbsidDims, windows: usize, opts: &PbsidOptions) -> Result<usize, FitError> {
     if !(opts.sched_weight > 0.0 && opts.sched_weight.is_finite()) {
-        return Err(FitError(format!(
-            "scheduling weight must be positive, got {}",
-            opts.sched_weight
-        )));
+        return Err(FitError::SchedulingWeight(opts.sched_weight));
     }
     if windows < 2 {
-        return Err(FitError(format!(
-            "{windows} regression windows: a past window of {} needs more samples",
-            dims.p
-        )));
+        return Err(FitError::TooFewWindows {
+            windows,
+            past: dims.p,
+        });
     }
     future(dims, opts)
 }
@@ -74,10 +73,10 @@ fn check_options(dims: &PbsidDims, windows: usize, opts: &PbsidOptions) -> Resul
 fn future(dims: &PbsidDims, opts: &PbsidOptions) -> Result<usize, FitError> {
     let f = opts.future.unwrap_or(dims.p);
     if f == 0 || f > dims.p {
-        return Err(FitError(format!(
-            "future window {f} must be between 1 and the past window {}",
-            dims.p
-        )));
+        return Err(FitError::FutureWindow {
+            future: f,
+            past: dims.p,
+        });
     }
     Ok(f)
 }
@@ -103,9 +102,11 @@ pub fn fit_with_validation(
     let m = dims.m();
     let min_samples = p + 3;
     if n_samples < min_samples {
-        return Err(FitError(format!(
-            "{n_samples} samples, but a past window of {p} needs at least {min_samples} (and many more for a useful fit)"
-        )));
+        return Err(FitError::TooFewSamples {
+            samples: n_samples,
+            past: p,
+            needed: min_samples,
+        });
     }
     let windows = n_samples - p;
     let q = dims.q()?;
@@ -145,14 +146,10 @@ pub fn fit_with_validation(
         }
     };
     if solver == Solver::Primal && q > 20_000 {
-        return Err(FitError(format!(
-            "the primal form needs a {q} x {q} Gram matrix; use the kernel form (--kernel) or a smaller past window"
-        )));
+        return Err(FitError::PrimalTooLarge { q });
     }
     if solver == Solver::Dual && windows > 20_000 {
-        return Err(FitError(format!(
-            "the kernel form needs a {windows} x {windows} kernel matrix; use the primal form or fewer samples"
-        )));
+        return Err(FitError::KernelTooLarge { windows });
     }
 
     // Candidate states for windows 0..=N-p (the last one only as the successor state).
@@ -160,9 +157,7 @@ pub fn fit_with_validation(
     let val_rows = match (opts.reg, val) {
         (Reg::BpdnSv, Some(v)) => {
             if v.u.ncols() != r || v.y.ncols() != l || v.p.ncols() != s {
-                return Err(FitError(
-                    "the validation data have other signals than the training data".into(),
-                ));
+                return Err(FitError::ValidationSignals);
             }
             Some(scaled_rows(v, &scaling))
         }
@@ -226,22 +221,22 @@ pub fn fit_from_stats<S: AsRef<[f64]> + AsMut<[f64]>>(
     let layout = StatsLayout::Extended;
     let len = stat_vector_len(dims, layout)?;
     if gram.dim() != len {
-        return Err(FitError(format!(
-            "statistics of dimension {} do not match the extended layout for r={}, l={}, s={}, p={} (expected {len})",
-            gram.dim(),
-            dims.r,
-            dims.l,
-            dims.s,
-            dims.p
-        )));
+        return Err(FitError::StatisticsDimension {
+            got: gram.dim(),
+            expected: len,
+            r: dims.r,
+            l: dims.l,
+            s: dims.s,
+            p: dims.p,
+        });
     }
     let sums = ChannelSums::from_stats(gram, dims, layout)?;
     let windows = sums.count.round() as usize;
     if opts.past != dims.p {
-        return Err(FitError(format!(
-            "the statistics were accumulated with past window {}, not {}",
-            dims.p, opts.past
-        )));
+        return Err(FitError::StatisticsPastWindow {
+            statistics: dims.p,
+            asked: opts.past,
+        });
     }
     let f = check_options(dims, windows, opts)?;
     let scaling = sums.scaling(opts.sched_weight)?;

@@ -67,10 +67,10 @@ pub(crate) fn choose_order(
     match opts.order {
         Order::Fixed(n) => {
             if n > sv.len() {
-                return Err(FitError(format!(
-                    "order {n} exceeds the f*l = {} singular values: increase the (future) window",
-                    sv.len()
-                )));
+                return Err(FitError::OrderTooLarge {
+                    order: n,
+                    available: sv.len(),
+                });
             }
             Ok((n, format!("order {n} given")))
         }

@@ -7,10 +7,10 @@ use lpvid::{packed_len, Gram, PbsidDims, Samples, Slab};
 use nalgebra::{DMatrix, DVector};
 
 use super::error::FitError;
-use crate::linalg::{min_norm_from_normal, sym_eig};
+use crate::linalg::{min_norm_from_normal, sym_eig, LinalgError};
 use crate::lpvss::LpvSs;
 
-/// Gamma^p K^p of eq. (14) from the estimate of C K^p (l x q): row block i, column block j
+/// Kernel paper, eq. (14): Gamma^p K^p from the estimate of C K^p (l x q): row block i, column block j
 /// (j >= i) is C (A~^(1))^{i-1} L_{p-j+1}, the leading m^{p-j+1}(r+l) columns of block
 /// (j - i + 1) of C K^p (Definitions 2 and 4); blocks with j < i are zero.
 pub fn gamma_k(dims: &PbsidDims, f: usize, ck: &DMatrix<f64>) -> DMatrix<f64> {
@@ -29,27 +29,28 @@ pub fn gamma_k(dims: &PbsidDims, f: usize, ck: &DMatrix<f64>) -> DMatrix<f64> {
     m
 }
 
-/// SVD of Gamma^p K^p Z (eq. (15)) through the eigendecomposition of its Gram
+/// Kernel paper, eq. (15): the SVD of Gamma^p K^p Z through the eigendecomposition of its Gram
 /// (Gamma K Z)(Gamma K Z)^T, which both forms can build. Returns the singular values and
 /// the left singular vectors.
-pub(crate) fn svd_left(w: &DMatrix<f64>) -> Result<(Vec<f64>, DMatrix<f64>), FitError> {
+pub(crate) fn svd_left(w: &DMatrix<f64>) -> Result<(Vec<f64>, DMatrix<f64>), LinalgError> {
     let (vals, vecs) = sym_eig(w)?;
     let sv = vals.iter().map(|v| v.max(0.0).sqrt()).collect();
     Ok((sv, vecs))
 }
 
-/// Eq. (15)-(16) on an explicit Gamma K Z (windows 0..=N-p): the SVD from its first
+/// Kernel paper, eq. (15)-(16), on an explicit Gamma K Z (windows 0..=N-p): the SVD from its first
 /// `windows` columns (the regression windows), state candidates U^T Gamma K Z for all.
 pub(crate) fn states_from_gkz(
     gkz: &DMatrix<f64>,
     windows: usize,
-) -> Result<(Vec<f64>, DMatrix<f64>), FitError> {
+) -> Result<(Vec<f64>, DMatrix<f64>), LinalgError> {
     let reg_cols = gkz.columns(0, windows);
     let (sv, u) = svd_left(&(reg_cols * reg_cols.transpose()))?;
     Ok((sv, u.transpose() * gkz))
 }
 
-/// Section 4.3, output equation: C and D from the normal equations of
+/// Kernel paper, section 4.3 with eq. (2), the output equation: C and D from the normal
+/// equations of
 /// y_k = C x_k + D u_k + e_k (regressors [x; u] or [x] without feedthrough).
 pub(crate) fn solve_cd(
     s_ff: &DMatrix<f64>,
@@ -69,7 +70,8 @@ pub(crate) fn solve_cd(
     Ok((c, d))
 }
 
-/// Section 4.3, state equation: A^(i), B^(i), K^(i) from the normal equations of
+/// Kernel paper, section 4.3 with eq. (1), the state equation: A^(i), B^(i), K^(i) from
+/// the normal equations of
 /// x_{k+1} = [A^(1) B^(1) K^(1) | ... | A^(m) B^(m) K^(m)] (mu_k (x) [x_k; u_k; e_k]).
 pub(crate) fn solve_abk(
     s_ff: &DMatrix<f64>,

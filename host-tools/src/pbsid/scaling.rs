@@ -95,17 +95,14 @@ impl ChannelSums {
         for (j, &m) in self.u.iter().enumerate() {
             let (mean, sd, _) = stats(m);
             if constant(mean, sd) {
-                return Err(FitError(format!(
-                    "input u{} is constant: it carries no information and makes the regression rank deficient",
-                    j + 1
-                )));
+                return Err(FitError::ConstantInput(j + 1));
             }
             sc.u.push(sd);
         }
         for (j, &m) in self.y.iter().enumerate() {
             let (mean, sd, _) = stats(m);
             if constant(mean, sd) {
-                return Err(FitError(format!("output y{} is constant", j + 1)));
+                return Err(FitError::ConstantOutput(j + 1));
             }
             sc.y.push(sd);
         }
@@ -113,10 +110,7 @@ impl ChannelSums {
         for (j, &m) in self.p.iter().enumerate() {
             let (mean, sd, rms) = stats(m);
             if constant(mean, sd) {
-                return Err(FitError(format!(
-                    "scheduling p{} is constant: it is indistinguishable from the affine term",
-                    j + 1
-                )));
+                return Err(FitError::ConstantScheduling(j + 1));
             }
             sc.p_scale.push(rms / (kappa / s).sqrt());
         }

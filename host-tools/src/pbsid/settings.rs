@@ -23,39 +23,63 @@ pub enum Reg {
     BpdnSv,
 }
 
+/// A setting given as text (command line, model file) that does not parse.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum SettingError {
+    /// `tikhonov=X` with an X that is not a number.
+    #[error("bad Tikhonov parameter in '{text}': {error}")]
+    TikhonovParameter {
+        /// The whole setting.
+        text: String,
+        /// Why X is not a number.
+        error: std::num::ParseFloatError,
+    },
+    /// Not a regularisation name.
+    #[error("unknown regularisation '{0}' (expected none, tikhonov-gcv, bpdn-aic or bpdn-sv)")]
+    UnknownReg(String),
+    /// Not a BPDN-SV score name.
+    #[error("unknown BPDN-SV score '{0}' (expected simulation or paper)")]
+    UnknownBpdnScore(String),
+    /// Not a positive integer or `auto`.
+    #[error("order must be a positive integer or 'auto', got '{0}'")]
+    Order(String),
+}
+
 impl std::str::FromStr for Reg {
-    type Err = String;
-    fn from_str(s: &str) -> Result<Self, String> {
+    type Err = SettingError;
+    fn from_str(s: &str) -> Result<Self, SettingError> {
         match s {
             "none" => Ok(Reg::None),
             "tikhonov-gcv" => Ok(Reg::TikhonovGcv),
             "bpdn-aic" => Ok(Reg::BpdnAic),
             "bpdn-sv" => Ok(Reg::BpdnSv),
-            t if t.starts_with("tikhonov=") => t[9..]
-                .parse::<f64>()
-                .map(Reg::Tikhonov)
-                .map_err(|e| format!("bad Tikhonov parameter in '{t}': {e}")),
-            other => Err(format!(
-                "unknown regularisation '{other}' (expected none, tikhonov-gcv, bpdn-aic or bpdn-sv)"
-            )),
+            t if t.starts_with("tikhonov=") => {
+                t[9..].parse::<f64>().map(Reg::Tikhonov).map_err(|error| {
+                    SettingError::TikhonovParameter {
+                        text: t.to_string(),
+                        error,
+                    }
+                })
+            }
+            other => Err(SettingError::UnknownReg(other.to_string())),
         }
     }
 }
 
 /// How BPDN-SV (`Reg::BpdnSv`) scores the points of its group-lasso path (see the module
-/// documentation of [`crate::bpdn`] for the evidence behind the default).
+/// documentation of [`super::bpdn`] for the evidence behind the default).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 pub enum BpdnScore {
     /// Ours (the default): the free-run simulation of each point's realized model, on the
     /// `--val` data or on the whole training record with an AIC order penalty; the point
-    /// and the order come out together ([`bpdn::select_by_simulation`]).
+    /// and the order come out together ([`super::bpdn::select_by_simulation`]).
     #[default]
     Simulation,
     /// The sparse paper's Algorithm 1: the path on the identification windows, each point
     /// scored by its one-step prediction error on the validation windows (from their
     /// statistics; the last quarter of the training record when no validation data are
-    /// given), the order then by the singular-value rule ([`bpdn::select`] with
-    /// [`bpdn::Rule::Sv`]).
+    /// given), the order then by the singular-value rule ([`super::bpdn::select`] with
+    /// [`super::bpdn::Rule::Sv`]).
     OneStep,
 }
 
@@ -70,14 +94,12 @@ impl BpdnScore {
 }
 
 impl std::str::FromStr for BpdnScore {
-    type Err = String;
-    fn from_str(s: &str) -> Result<Self, String> {
+    type Err = SettingError;
+    fn from_str(s: &str) -> Result<Self, SettingError> {
         match s {
             "simulation" => Ok(BpdnScore::Simulation),
             "paper" => Ok(BpdnScore::OneStep),
-            other => Err(format!(
-                "unknown BPDN-SV score '{other}' (expected simulation or paper)"
-            )),
+            other => Err(SettingError::UnknownBpdnScore(other.to_string())),
         }
     }
 }
@@ -92,16 +114,14 @@ pub enum Order {
 }
 
 impl std::str::FromStr for Order {
-    type Err = String;
-    fn from_str(s: &str) -> Result<Self, String> {
+    type Err = SettingError;
+    fn from_str(s: &str) -> Result<Self, SettingError> {
         if s == "auto" {
             return Ok(Order::Auto);
         }
         match s.parse::<usize>() {
             Ok(n) if n > 0 => Ok(Order::Fixed(n)),
-            _ => Err(format!(
-                "order must be a positive integer or 'auto', got '{s}'"
-            )),
+            _ => Err(SettingError::Order(s.to_string())),
         }
     }
 }

@@ -52,9 +52,7 @@ pub(crate) fn bpdn_states(
             Some(rows) => {
                 let vs = Slab::new(rows, dims.r, dims.l, dims.m())?;
                 if vs.len() < p + 2 {
-                    return Err(FitError(
-                        "the validation data are shorter than the window".into(),
-                    ));
+                    return Err(FitError::ValidationTooShort);
                 }
                 Some(vs)
             }
@@ -162,11 +160,11 @@ pub(crate) fn bpdn_paper(
         }
     };
     if id_windows.len() < 2 || val_windows.len() < 2 {
-        return Err(FitError(format!(
-            "{} identification and {} validation windows: too few samples for BPDN-SV (paper score) with a past window of {p}",
-            id_windows.len(),
-            val_windows.len()
-        )));
+        return Err(FitError::TooFewBpdnWindows {
+            identification: id_windows.len(),
+            validation: val_windows.len(),
+            past: p,
+        });
     }
     let (id, y_id) = bpdn::LazyGram::build(dims, slab, &id_windows, opts.feedthrough)?;
     let (val, y_val) = bpdn::LazyGram::build(
