@@ -158,12 +158,13 @@ pub fn dot4(a: &[f64], b: &[f64]) -> f64 {
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
     use lpvid::kernel::{shifted_kernel, theorem10};
 
-    /// Samples [u (r), y (l), 1, p (m - 1)] of a small deterministic record.
-    fn record(r: usize, l: usize, m: usize, n: usize) -> Vec<f64> {
+    /// Samples [u (r), y (l), 1, p (m - 1)] of a small deterministic record (also the data of
+    /// the eq. (25) test of [`crate::pbsid::dual`]).
+    pub(crate) fn record(r: usize, l: usize, m: usize, n: usize) -> Vec<f64> {
         let w = r + l + m;
         (0..n * w)
             .map(|i| {

@@ -445,19 +445,7 @@ pub fn batch_means_t(d: &[f64], batches: usize) -> (f64, f64) {
         return (0.0, 1.0);
     }
     let means: Vec<f64> = (0..b).map(|i| mean(&d[i * len..(i + 1) * len])).collect();
-    let m = mean(&means);
-    let s2 = means.iter().map(|v| (v - m) * (v - m)).sum::<f64>() / (b - 1) as f64;
-    let se = (s2 / b as f64).sqrt();
-    let t = if se > 0.0 {
-        m / se
-    } else if m > 0.0 {
-        f64::INFINITY
-    } else if m < 0.0 {
-        f64::NEG_INFINITY
-    } else {
-        0.0
-    };
-    (t, (b - 1) as f64)
+    mean_t(&means)
 }
 
 /// Paired batch test of a relative improvement: `loss0` and `loss1` (per-sample squared
@@ -480,8 +468,15 @@ pub fn batch_log_ratio_t(loss0: &[f64], loss1: &[f64], batches: usize) -> (f64, 
             (a.max(1e-300) / c.max(1e-300)).ln()
         })
         .collect();
-    let m = mean(&r);
-    let s2 = r.iter().map(|v| (v - m) * (v - m)).sum::<f64>() / (b - 1) as f64;
+    mean_t(&r)
+}
+
+/// One-sample t statistic of the mean of `v` (B = len(v) >= 2 values): mean / (sd / sqrt(B)),
+/// +-inf for a zero spread with a nonzero mean. Returns (t, B - 1).
+fn mean_t(v: &[f64]) -> (f64, f64) {
+    let b = v.len();
+    let m = mean(v);
+    let s2 = v.iter().map(|v| (v - m) * (v - m)).sum::<f64>() / (b - 1) as f64;
     let se = (s2 / b as f64).sqrt();
     let t = if se > 0.0 {
         m / se

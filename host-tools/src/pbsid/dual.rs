@@ -243,16 +243,7 @@ mod tests {
         let dims = PbsidDims::new(r, l, s, p).unwrap();
         let m = dims.m();
         let n = 19;
-        let w = r + l + m;
-        let rows: Vec<f64> = (0..n * w)
-            .map(|i| {
-                if i % w == r + l {
-                    1.0
-                } else {
-                    ((i * 29 % 31) as f64 / 15.0) - 1.0
-                }
-            })
-            .collect();
+        let rows = crate::kernel_sweep::tests::record(r, l, m, n);
         let slab = Slab::new(&rows, r, l, m).unwrap();
         let nb = n - p;
         let alpha = DMatrix::from_fn(l, nb, |j, a| ((j * nb + a) as f64 * 0.37).cos());
