@@ -6,6 +6,7 @@ use crate::arx::ArxError;
 use crate::data::DataError;
 use crate::diagnose::DiagnoseError;
 use crate::link::{CompareError, LinkError};
+use crate::observer::ObserverError;
 use crate::pbsid::FitError;
 
 /// Anything the host library can fail with.
@@ -23,8 +24,8 @@ pub enum Error {
         source: FitError,
     },
     /// The observer step (H-infinity design, operating box) failed.
-    #[error("{0}")]
-    Observer(String),
+    #[error(transparent)]
+    Observer(#[from] ObserverError),
     /// LPV-ARX settings or data rejected before fitting.
     #[error(transparent)]
     Arx(#[from] ArxError),
@@ -46,19 +47,13 @@ pub enum Error {
     #[error("diagnose: {0}")]
     Diagnose(#[from] DiagnoseError),
     /// A core (statistics) error: dimensions, capacities, non-finite samples.
-    #[error("{0}")]
-    Core(lpvid::Error),
-}
-
-impl From<lpvid::Error> for Error {
-    fn from(e: lpvid::Error) -> Self {
-        Error::Core(e)
-    }
+    #[error(transparent)]
+    Core(#[from] lpvid::Error),
 }
 
 impl Error {
-    /// The observer step's error, as reported.
-    pub fn observer(e: impl std::fmt::Display) -> Error {
-        Error::Observer(e.to_string())
+    /// The observer step's error (for `map_err`).
+    pub fn observer(e: ObserverError) -> Error {
+        Error::Observer(e)
     }
 }

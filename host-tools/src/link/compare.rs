@@ -14,8 +14,8 @@ pub type HostStats<T> = PbsidStats<T, Vec<T>, Vec<T>, Vec<T>>;
 #[derive(Debug, thiserror::Error)]
 pub enum CompareError {
     /// The core rejected the dimensions or a sample.
-    #[error("{0}")]
-    Core(lpvid::Error),
+    #[error(transparent)]
+    Core(#[from] lpvid::Error),
     /// The pulled statistics do not have the size these dimensions give.
     #[error(
         "the device holds {pulled} statistic values, the host computes {host} for these dimensions"
@@ -37,12 +37,6 @@ pub enum CompareError {
         /// The fit's error.
         source: FitError,
     },
-}
-
-impl From<lpvid::Error> for CompareError {
-    fn from(e: lpvid::Error) -> Self {
-        CompareError::Core(e)
-    }
 }
 
 /// Extended (or plain) statistics of `sig` accumulated on the host with the core's code in
