@@ -558,9 +558,9 @@ impl Dataset {
                 format!(
                     "column '{name}': value {:e} is too large: the fit squares the data and \
                      values above {MAX_MAGNITUDE:e} overflow; rescale the column (e.g. divide it \
-                     by {:e})",
+                     by 1e{})",
                     col[k],
-                    10f64.powi(big.log10().floor() as i32)
+                    big.log10().floor() as i32
                 ),
             ));
         }
@@ -572,9 +572,9 @@ impl Dataset {
                 format!(
                     "column '{name}': every value is below {:e} in magnitude (largest {big:e}): \
                      their squares underflow to zero; rescale the column (e.g. multiply it by \
-                     {:e})",
+                     1e{})",
                     1.0 / MAX_MAGNITUDE,
-                    10f64.powi(-(big.log10().floor() as i32))
+                    -(big.log10().floor() as i32)
                 ),
             ));
         }

@@ -146,14 +146,14 @@ pub fn pbsid_warnings(
     } else {
         "more data".to_string()
     };
+    // the kernel form routinely has more regressors than windows: that alone is no warning,
+    // only as the likely cause of a degenerate fit
     let q_all = fit.q + if opts.feedthrough { fit.model.r() } else { 0 };
-    if fit.windows <= q_all {
-        w.push(format!(
-            "only {} windows for {q_all} regressors: the regression has more unknowns than \
-             equations and rests on the regularisation alone; try {smaller} or more data",
-            fit.windows
-        ));
-    }
+    let few_windows = if fit.windows <= q_all {
+        format!(" with only {} windows for {q_all} regressors", fit.windows)
+    } else {
+        String::new()
+    };
     for sc in std::iter::once(train).chain(val) {
         if let Some(k) = sc.diverged_at {
             w.push(format!(
@@ -165,8 +165,8 @@ pub fn pbsid_warnings(
     }
     if train.diverged_at.is_none() && train.vaf_mean < 1.0 {
         w.push(format!(
-            "degenerate fit: VAF {:.3} % on its own training data ({}); try {smaller}, a fixed \
-             --order, or check that the columns are the signals you mean",
+            "degenerate fit: VAF {:.3} % on its own training data ({}){few_windows}; try \
+             {smaller}, a fixed --order, or check that the columns are the signals you mean",
             train.vaf_mean, train.file
         ));
     }

@@ -122,6 +122,7 @@ pub fn pbsid_fit_record(opts: &PbsidOptions, fit: &PbsidFit, train: Value) -> Va
         "past": opts.past,
         "future": opts.future.unwrap_or(opts.past),
         "order": fit.order,
+        "states": fit.model.n(),
         "order_rule": order_rule(opts.order),
         "order_reason": fit.order_reason,
         "max_order": opts.max_order,

@@ -531,12 +531,31 @@ pub fn candidates(ctx: &Context<'_>) -> (Vec<Candidate>, Vec<(Effect, String)>) 
         na.push((Effect::InputDelay, "no plain input channel".into()));
     }
     for (_, f) in &inputs_plain {
-        for prod in [
+        // an input of one sign throughout makes sign(u) the constant (the output offset's
+        // regressor) and |u| u = +-u^2: the same regressors, tried once
+        let one_sign = [ctx.train, ctx.val].iter().all(|d| {
+            d.column(&f.col)
+                .is_some_and(|c| c.iter().all(|&v| v > 0.0) || c.iter().all(|&v| v < 0.0))
+        });
+        if one_sign {
+            na.push((
+                Effect::InputNonlinearity,
+                format!(
+                    "sign({0}) and |{0}| {0} are not tried: {0} has one sign throughout, so \
+                     sign({0}) is the constant of output-offset and |{0}| {0} is +-{0}^2",
+                    f.col
+                ),
+            ));
+        }
+        for (v, prod) in [
             vec![fac(&f.col, 2, f.delay, None)],
             vec![fac(&f.col, 1, f.delay, Some(FactorFn::Abs)), f.clone()],
             vec![fac(&f.col, 1, f.delay, Some(FactorFn::Sign))],
-        ] {
-            if map.inputs.contains(&prod) {
+        ]
+        .into_iter()
+        .enumerate()
+        {
+            if map.inputs.contains(&prod) || (one_sign && v > 0) {
                 continue;
             }
             let mut sp = spec.clone();
@@ -923,12 +942,14 @@ pub fn evidence(
             };
             for c in free.cross.iter().filter(|c| kinds.contains(&c.kind)) {
                 ev.push(format!(
-                    "cross-correlation residual {} / {}: largest |r| = {:.3} at lag {} ({}; Bartlett band +-{:.3})",
+                    "cross-correlation residual {} / {}: largest |r| = {:.3} at lag {} ({} the significance bound +-{:.3}: Bartlett's band at level {} with a Bonferroni correction over the lags; the 95 % band is +-{:.3})",
                     c.output,
                     c.signal,
                     c.max_abs,
                     c.at_lag,
-                    if c.significant { "significant" } else { "within the bounds" },
+                    if c.significant { "beyond" } else { "within" },
+                    c.bound,
+                    ALPHA,
                     c.bartlett_band
                 ));
             }
@@ -962,14 +983,22 @@ pub fn evidence(
             );
         }
         Effect::PeriodicDisturbance => {
+            if let Some(b) = best {
+                // the candidate's line comes from the training residual (choosing it on the
+                // validation data would score it on the data it was chosen with)
+                ev.push(format!(
+                    "the candidate adds the strongest line of the refit's training residual: {}",
+                    b.cand.detail
+                ));
+            }
             for s in &free.spectrum {
                 match s.peaks.first() {
                     Some(p) => ev.push(format!(
-                        "periodogram of residual {}: line at {:.4} rad/sample (period {:.2} samples), {:.0}x the local level (threshold {:.1})",
+                        "validation periodogram of residual {}: line at {:.4} rad/sample (period {:.2} samples), {:.0}x the local level (threshold {:.1})",
                         s.output, p.omega, p.period, p.ratio, s.threshold
                     )),
                     None => ev.push(format!(
-                        "periodogram of residual {}: no significant line (largest {:.1}x the local level at {:.4} rad/sample, threshold {:.1})",
+                        "validation periodogram of residual {}: no significant line (largest {:.1}x the local level at {:.4} rad/sample, threshold {:.1})",
                         s.output, s.top.ratio, s.top.omega, s.threshold
                     )),
                 }

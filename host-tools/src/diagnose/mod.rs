@@ -506,6 +506,30 @@ pub fn diagnose_with_progress(
         });
         let top = findings.first().filter(|f| f.0.significant).map(|f| f.1);
         let top_finding = findings.first().map(|f| f.0.clone());
+        // the rule that blocked the best finding, for the stop line (human text and JSON)
+        let blocked_by = findings.first().map(|(f, i)| {
+            let j = best.iter().position(|b| b.1 == *i);
+            let rep = j.and_then(|j| replication[j].as_ref());
+            let p_max = ALPHA / tried.max(1) as f64;
+            if f.explained < effects::MIN_EXPLAINED {
+                format!(
+                    "it explains {:.1} % < {:.0} %",
+                    100.0 * f.explained,
+                    100.0 * effects::MIN_EXPLAINED
+                )
+            } else if f.p_value >= p_max {
+                format!("p = {:.2e} is not below {p_max:.1e}", f.p_value)
+            } else if let Some(r) = rep.filter(|r| !effects::replicated(r)) {
+                format!(
+                    "it is not replicated on the two halves of the training data (explains {}, p = {}; each half needs explained > 0 and p < {})",
+                    r.iter().map(|x| format!("{:.1} %", 100.0 * x.0)).collect::<Vec<_>>().join(" and "),
+                    r.iter().map(|x| format!("{:.1e}", x.1)).collect::<Vec<_>>().join(", "),
+                    effects::REPLICATION_ALPHA
+                )
+            } else {
+                "it is below the noise threshold".to_string()
+            }
+        });
         let variants_scored = scored
             .iter()
             .map(|s| VariantScore {
@@ -532,11 +556,12 @@ pub fn diagnose_with_progress(
         let Some(i) = top else {
             stopped = match top_finding {
                 Some(f) => format!(
-                    "nothing explains the residual above the noise threshold (best: {} explains {:.1} % of the held-out {} error, p = {:.2e}; a finding needs >= {:.0} % and p < {:.1e})",
+                    "nothing explains the residual above the noise threshold (best: {} explains {:.1} % of the held-out {} error, p = {:.2e}; not a finding because {}; a finding needs >= {:.0} %, p < {:.1e} and replication on each half of the training data)",
                     f.effect,
                     100.0 * f.explained,
                     f.residual,
                     f.p_value,
+                    blocked_by.as_deref().unwrap_or("it is below the noise threshold"),
                     100.0 * effects::MIN_EXPLAINED,
                     ALPHA / tried.max(1) as f64
                 ),

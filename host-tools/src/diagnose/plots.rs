@@ -41,6 +41,8 @@ struct Panel {
     series: Vec<Series>,
     /// Horizontal lines (y, colour, dashed).
     hlines: Vec<(f64, &'static str, bool)>,
+    /// Legend entries of the horizontal lines (colour, label), drawn dashed.
+    hline_labels: Vec<(&'static str, String)>,
     log_y: bool,
 }
 
@@ -52,6 +54,7 @@ impl Panel {
             ylabel: ylabel.into(),
             series: vec![],
             hlines: vec![],
+            hline_labels: vec![],
             log_y: false,
         }
     }
@@ -270,20 +273,37 @@ fn draw_panel(p: &Panel, ox: f64, oy: f64, s: &mut String) {
             }
         }
     }
-    // legend
+    // legend: in the top right corner, as wide as its longest label
+    let longest = p
+        .series
+        .iter()
+        .map(|se| se.label.chars().count())
+        .chain(p.hline_labels.iter().map(|h| h.1.chars().count()))
+        .max()
+        .unwrap_or(0) as f64;
+    let lx = ox + ML + pw - (24.0 + 5.6 * longest).min(pw - 10.0);
     let mut ly = oy + MT + 12.0;
-    for se in p.series.iter().filter(|se| !se.label.is_empty()) {
+    let entries = p
+        .series
+        .iter()
+        .filter(|se| !se.label.is_empty())
+        .map(|se| (se.color, se.label.as_str(), "2", ""))
+        .chain(
+            p.hline_labels
+                .iter()
+                .map(|(c, l)| (*c, l.as_str(), "1", r#" stroke-dasharray="4 3""#)),
+        );
+    for (color, label, width, dash) in entries {
         let _ = writeln!(
             s,
-            r#"<line x1="{:.1}" y1="{:.1}" x2="{:.1}" y2="{:.1}" stroke="{}" stroke-width="2"/><text x="{:.1}" y="{:.1}" font-size="10">{}</text>"#,
-            ox + ML + pw - 120.0,
+            r#"<line x1="{:.1}" y1="{:.1}" x2="{:.1}" y2="{:.1}" stroke="{color}" stroke-width="{width}"{dash}/><text x="{:.1}" y="{:.1}" font-size="10">{}</text>"#,
+            lx,
             ly - 3.0,
-            ox + ML + pw - 104.0,
+            lx + 16.0,
             ly - 3.0,
-            se.color,
-            ox + ML + pw - 100.0,
+            lx + 20.0,
             ly,
-            esc(&se.label)
+            esc(label)
         );
         ly += 13.0;
     }
@@ -342,10 +362,17 @@ pub fn render_all(dir: &Path, res: &Outcome) -> Vec<(PathBuf, String)> {
     let mut panels = Vec::new();
     for j in 0..l {
         let mut p = Panel::new(
-            format!(
-                "validation output {}: measured and simulated (free run)",
-                j + 1
-            ),
+            if show < n {
+                format!(
+                    "validation output {}: measured and simulated (free run), last {show} of {n} samples",
+                    j + 1
+                )
+            } else {
+                format!(
+                    "validation output {}: measured and simulated (free run)",
+                    j + 1
+                )
+            },
             "sample",
             &format!("y{}", j + 1),
         );
@@ -396,6 +423,8 @@ pub fn render_all(dir: &Path, res: &Outcome) -> Vec<(PathBuf, String)> {
             ));
             p.hlines.push((w.band, "#d62728", true));
             p.hlines.push((-w.band, "#d62728", true));
+            p.hline_labels
+                .push(("#d62728", "+-1.96/sqrt(N): 95 % band".into()));
             panels.push(p);
         }
     }
@@ -430,6 +459,13 @@ pub fn render_all(dir: &Path, res: &Outcome) -> Vec<(PathBuf, String)> {
         p.hlines.push((-c.band, "#999", true));
         p.hlines.push((c.bartlett_band, "#d62728", true));
         p.hlines.push((-c.bartlett_band, "#d62728", true));
+        p.hlines.push((c.bound, "#000", true));
+        p.hlines.push((-c.bound, "#000", true));
+        p.hline_labels
+            .push(("#999", "+-1.96/sqrt(N): 95 %, white".into()));
+        p.hline_labels
+            .push(("#d62728", "Bartlett 95 % band".into()));
+        p.hline_labels.push(("#000", "significance bound".into()));
         panels.push(p);
     }
     if !panels.is_empty() {

@@ -364,6 +364,9 @@ pub fn fit_spec(spec: &Spec, train: &Dataset, base_fit: &Value) -> Result<Fitted
             None => Value::Null,
         },
         "train_rows": train.len(),
+        // "order" stays the plant order the refit uses; with a noise model the model has more
+        // states (plant + AR noise states)
+        "states": ss.n(),
     });
     for u in [common, updates] {
         if let Value::Object(u) = u {

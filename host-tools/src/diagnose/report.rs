@@ -78,8 +78,8 @@ fn residual_lines(r: &ResidualReport, s: &mut String) {
     for c in r.cross.iter().filter(|c| c.significant) {
         let _ = writeln!(
             s,
-            "  - output {}: correlated with {} {} (|r| = {:.3} at lag {}, 95 % Bartlett band +-{:.3})",
-            c.output, c.kind, c.signal, c.max_abs, c.at_lag, c.bartlett_band
+            "  - output {}: correlated with {} {} (|r| = {:.3} at lag {}, beyond the significance bound +-{:.3}; 95 % Bartlett band +-{:.3})",
+            c.output, c.kind, c.signal, c.max_abs, c.at_lag, c.bound, c.bartlett_band
         );
     }
     for t in r.nonlinear.iter().filter(|t| t.ratio > 1.0).take(3) {

@@ -69,6 +69,9 @@ pub struct CrossCorr {
     pub at_lag: isize,
     /// |r| beyond Bartlett's band at level ALPHA, Bonferroni over the lags.
     pub significant: bool,
+    /// The bound `significant` tests |r| against: Bartlett's band at level ALPHA with a
+    /// Bonferroni correction over the lags (wider than the 95 % `bartlett_band`).
+    pub bound: f64,
 }
 
 /// Correlation of the residual with a nonlinear regressor.
@@ -429,6 +432,7 @@ pub fn analyse(
                 max_abs: rmax.abs(),
                 at_lag: imax as isize - maxlag as isize,
                 significant: rmax.abs() > z_cc * bsd,
+                bound: z_cc * bsd,
                 r,
             });
         }
