@@ -91,6 +91,15 @@ def main(totals):
                       / max(np.max(np.abs(getattr(m_one, k))), 1e-300))
                 for k in "ABKCD"
             )
+            got = lpvid.Statistics.from_bytes(raw)
+            g_diff = float(np.max(np.abs(got.packed() - st.packed())) / np.max(np.abs(st.packed())))
+            uu, yy, pp = frames[0].u1.to_numpy(), frames[0].y1.to_numpy(), frames[0].p1.to_numpy()
+            y_diff = float(np.max(np.abs(m_dask.simulate(uu, pp) - m_one.simulate(uu, pp)))
+                           / np.max(np.abs(yy)))
+            per = {k: float(np.max(np.abs(getattr(m_dask, k) - getattr(m_one, k)))
+                            / max(np.max(np.abs(getattr(m_one, k))), 1e-300)) for k in "ABKCD"}
+            print("   statistics difference %.1e, free-run output difference %.1e, per matrix %s"
+                  % (g_diff, y_diff, ", ".join(f"{k} {v:.1e}" for k, v in per.items())))
             print(f"samples {EXPERIMENTS * n:>9}: dask 2 workers {t_dask:7.2f} s, one process "
                   f"{t_one:7.2f} s, fit {t_fit * 1e3:6.1f} ms; client received {len(raw)} bytes "
                   f"(statistics {st.nbytes}), data {data_bytes / 1e6:.0f} MB; per worker sends "

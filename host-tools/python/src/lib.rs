@@ -410,8 +410,8 @@ fn pbsid_options(
         return Err(invalid("kernel_rows and primal=True exclude each other"));
     }
     let mut o = PbsidOptions::new(past);
-    o.order = order.parse::<Order>().map_err(invalid)?;
-    o.reg = reg.parse::<Reg>().map_err(invalid)?;
+    o.order = order.parse::<Order>().map_err(|e| invalid(e.to_string()))?;
+    o.reg = reg.parse::<Reg>().map_err(|e| invalid(e.to_string()))?;
     if let Some(b) = bpdn_score {
         if o.reg != Reg::BpdnSv {
             return Err(invalid(format!(
@@ -419,7 +419,7 @@ fn pbsid_options(
                 reg_name(o.reg)
             )));
         }
-        o.bpdn_score = b.parse::<BpdnScore>().map_err(invalid)?;
+        o.bpdn_score = b.parse::<BpdnScore>().map_err(|e| invalid(e.to_string()))?;
     }
     o.feedthrough = feedthrough;
     o.solver = if kernel {
@@ -553,15 +553,23 @@ fn arx(
     val: Option<&PyData>,
 ) -> PyResult<(PyModel, String)> {
     let mut o = ArxOptions::new(na, nb, ng);
-    o.estimator = estimator.parse::<Estimator>().map_err(invalid)?;
+    o.estimator = estimator
+        .parse::<Estimator>()
+        .map_err(|e| invalid(e.to_string()))?;
     o.sigma = match sigma_p {
-        Some(s) => s.parse::<SigmaChoice>().map_err(invalid)?,
+        Some(s) => s
+            .parse::<SigmaChoice>()
+            .map_err(|e| invalid(e.to_string()))?,
         None if o.estimator == Estimator::Bciv => SigmaChoice::Auto,
         None => SigmaChoice::Fixed(0.0),
     };
-    o.lambda = lambda_.parse::<LambdaChoice>().map_err(invalid)?;
+    o.lambda = lambda_
+        .parse::<LambdaChoice>()
+        .map_err(|e| invalid(e.to_string()))?;
     o.sigma_grid = sigma_grid;
-    o.sigma_data = sigma_data.parse::<SigmaData>().map_err(invalid)?;
+    o.sigma_data = sigma_data
+        .parse::<SigmaData>()
+        .map_err(|e| invalid(e.to_string()))?;
     o.adaptive = !plain_l1;
     o.debias = !no_debias;
     o.one_se = !min_cost;
