@@ -29,7 +29,7 @@ use crate::pbsid::{self, PbsidFit, PbsidOptions, Reg};
 use crate::simulate::{simulate, Mode};
 
 pub use crate::record::{
-    fingerprint, order_rule, pbsid_fit_record, reg_name, training_signals, DataFile,
+    fingerprint, order_rule, pbsid_fit_record, reg_name, solver_name, training_signals, DataFile,
 };
 pub use crate::simulate::{score, Score};
 

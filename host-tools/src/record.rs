@@ -85,6 +85,17 @@ pub fn order_rule(o: Order) -> String {
     }
 }
 
+/// The solver as the `fit` record and the summaries name it: `primal` or `kernel`, and
+/// `sparse` for BPDN (which always solves with explicit regressors, whatever the cost model
+/// chose for the dense forms; its `solver_reason` says so).
+pub fn solver_name(opts: &PbsidOptions, fit: &PbsidFit) -> &'static str {
+    if matches!(opts.reg, Reg::BpdnAic | Reg::BpdnSv) {
+        "sparse"
+    } else {
+        fit.solver.name()
+    }
+}
+
 /// The training data as the fit sees it, checked: every used column present and not
 /// constant, enough rows for the window.
 pub fn training_signals(ds: &Dataset, past: usize) -> Result<(SignalMap, Signals), DataError> {
@@ -130,7 +141,7 @@ pub fn pbsid_fit_record(opts: &PbsidOptions, fit: &PbsidFit, train: Value) -> Va
         "bpdn_score": (opts.reg == Reg::BpdnSv).then(|| opts.bpdn_score.name()),
         "lambda": fit.lambda,
         "effective_parameters": fit.dof,
-        "solver": fit.solver.name(),
+        "solver": solver_name(opts, fit),
         "solver_reason": fit.solver_reason,
         "feedthrough": opts.feedthrough,
         "observer": "ls",

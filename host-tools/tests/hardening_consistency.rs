@@ -261,3 +261,103 @@ fn coloured_noise_fix_records_the_state_dimension() {
         assert!(ss.n() > order, "{fit}");
     }
 }
+
+#[test]
+fn a_sparse_fit_is_recorded_as_sparse() {
+    let dir = tempfile::tempdir().unwrap();
+    let t = dir.path().join("t.csv");
+    std::fs::write(&t, rows(300, 0.0)).unwrap();
+    let m = dir.path().join("m.json");
+    let json = lpvid(&[
+        "pbsid",
+        "--train",
+        s(&t),
+        "--past",
+        "2",
+        "--reg",
+        "bpdn-aic",
+        "--out",
+        s(&m),
+        "--json",
+    ])
+    .unwrap();
+    let fit = &read_json(&m)["fit"];
+    assert_eq!(fit["solver"], "sparse", "{fit}");
+    assert!(fit["solver_reason"].as_str().unwrap().contains("sparse"));
+    let v: Value = serde_json::from_str(&json).unwrap();
+    assert_eq!(v["solver"], "sparse");
+}
+
+#[test]
+fn diagnose_reports_its_candidate_progress() {
+    use lpvid_host::diagnose::{diagnose_with_progress, Options};
+    use std::sync::atomic::{AtomicUsize, Ordering};
+    let (plant, args) = planted("output-offset");
+    let (train, val) = generate(&plant, 5);
+    let dir = tempfile::tempdir().unwrap();
+    let (tp, mp) = (dir.path().join("t.csv"), dir.path().join("m.json"));
+    train.write_csv(&tp).unwrap();
+    let mut a = vec!["pbsid", "--train", s(&tp)];
+    a.extend(args.iter());
+    a.extend(["--out", s(&mp)]);
+    lpvid(&a).unwrap();
+    let model = lpvid_host::model::ModelFile::read(&mp).unwrap();
+    let (calls, last, total) = (
+        AtomicUsize::new(0),
+        AtomicUsize::new(0),
+        AtomicUsize::new(0),
+    );
+    let progress = |done: usize, of: usize| {
+        calls.fetch_add(1, Ordering::Relaxed);
+        last.fetch_max(done, Ordering::Relaxed);
+        total.store(of, Ordering::Relaxed);
+        assert!(done >= 1 && done <= of);
+    };
+    let out =
+        diagnose_with_progress(&model, &train, &val, &Options::default(), Some(&progress)).unwrap();
+    let variants = out.report.steps[0].variants;
+    assert_eq!(calls.load(Ordering::Relaxed), variants);
+    assert_eq!(last.load(Ordering::Relaxed), variants);
+    assert_eq!(total.load(Ordering::Relaxed), variants);
+}
+
+#[test]
+fn progress_stays_off_the_output_and_quiet_is_global() {
+    let dir = tempfile::tempdir().unwrap();
+    let t = dir.path().join("t.csv");
+    std::fs::write(&t, rows(300, 0.0)).unwrap();
+    let m = dir.path().join("m.json");
+    for args in [
+        vec![
+            "--quiet",
+            "pbsid",
+            "--train",
+            s(&t),
+            "--past",
+            "2",
+            "--out",
+            s(&m),
+        ],
+        vec![
+            "pbsid",
+            "--train",
+            s(&t),
+            "--past",
+            "2",
+            "--out",
+            s(&m),
+            "--quiet",
+        ],
+        vec!["pbsid", "--train", s(&t), "--past", "2", "--out", s(&m)],
+    ] {
+        let o = std::process::Command::new(env!("CARGO_BIN_EXE_lpvid"))
+            .args(&args)
+            .output()
+            .unwrap();
+        assert!(o.status.success());
+        // stderr is a pipe here: no bar, no spinner, no carriage returns
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert!(!err.contains('\r') && !err.contains("fitting"), "{err}");
+        assert!(String::from_utf8_lossy(&o.stdout).contains("model written to"));
+    }
+}

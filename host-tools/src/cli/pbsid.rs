@@ -232,7 +232,7 @@ pub(super) fn pbsid_json(run: &Identified, out_path: Option<&Path>) -> Value {
         "order": run.fit.order,
         "order_reason": run.fit.order_reason,
         "singular_values": run.fit.singular_values,
-        "solver": run.fit.solver.name(),
+        "solver": run.model.fit["solver"],
         "lambda": run.fit.lambda,
         "train": run.train_score,
         "val": run.val_score,
