@@ -3,7 +3,7 @@
 //! written, the command fails before any work, with an error that says why, and no input
 //! file changes (bytes and modification time).
 
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 use std::time::SystemTime;
 
 use lpvid_host::cli::run;
