@@ -207,25 +207,33 @@ fn read_bounded(source: &str, reader: &mut dyn Read, limit: u64) -> Result<Vec<u
                 ))
             }
         };
-        for &b in &buf[..n] {
-            if b == b'\n' {
-                line += 1;
-                line_len = 0;
-            } else {
-                line_len += 1;
-                if line_len > MAX_LINE_BYTES {
-                    return Err(DataError::new(
-                        source,
-                        Some(line),
-                        None,
-                        format!(
-                            "line longer than {} MiB: not a data file (a binary file or a \
-                             device that never ends?)",
-                            MAX_LINE_BYTES >> 20
-                        ),
-                    ));
-                }
+        // a line only grows past the limit across chunk boundaries (chunks are smaller)
+        let chunk = &buf[..n];
+        let (grows, rest) = match (
+            chunk.iter().position(|&b| b == b'\n'),
+            chunk.iter().rposition(|&b| b == b'\n'),
+        ) {
+            (Some(first), Some(last)) => (first, Some(n - last - 1)),
+            _ => (n, None),
+        };
+        if line_len + grows > MAX_LINE_BYTES {
+            return Err(DataError::new(
+                source,
+                Some(line),
+                None,
+                format!(
+                    "line longer than {} MiB: not a data file (a binary file or a device that \
+                     never ends?)",
+                    MAX_LINE_BYTES >> 20
+                ),
+            ));
+        }
+        match rest {
+            Some(r) => {
+                line += chunk.iter().filter(|&&b| b == b'\n').count();
+                line_len = r;
             }
+            None => line_len += n,
         }
         bytes.extend_from_slice(&buf[..n]);
         if bytes.len() as u64 > limit {
@@ -990,6 +998,15 @@ mod tests {
         let e = Dataset::parse("z.csv", zeros).unwrap_err();
         assert_eq!(e.line, Some(1));
         assert!(e.message.contains("line longer than"), "{e}");
+        let mut long = b"u1,y1\n1,2\n".to_vec();
+        long.extend(std::iter::repeat_n(b'1', MAX_LINE_BYTES + 10));
+        let e = Dataset::parse("l.csv", &long[..]).unwrap_err();
+        assert_eq!(e.line, Some(3), "{e}");
+        // exactly at the limit is fine
+        let mut ok = b"u1,y1\n".to_vec();
+        ok.extend(std::iter::repeat_n(b' ', MAX_LINE_BYTES - 4));
+        ok.extend(b"1,2\n");
+        assert_eq!(Dataset::parse("ok.csv", &ok[..]).unwrap().len(), 1);
         let e = read_input(Path::new("/dev/zero")).unwrap_err();
         assert!(e.message.contains("character device"), "{e}");
         let e = read_input(Path::new("/")).unwrap_err();
