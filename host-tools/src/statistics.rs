@@ -317,11 +317,22 @@ impl Statistics {
                 }
             })
             .collect();
+        Statistics::from_packed(dims, &values, windows, experiments)
+    }
+
+    /// Statistics from a packed extended Gram as a device holds them (`lpvid device pull`):
+    /// `windows` windows of `experiments` experiments.
+    pub fn from_packed(
+        dims: PbsidDims,
+        values: &[f64],
+        windows: u64,
+        experiments: u64,
+    ) -> Result<Statistics, Error> {
         if let Some(i) = values.iter().position(|v| !v.is_finite()) {
             return Err(data_error(format!("value {i} is not finite")));
         }
         let mut st = Statistics::new(dims)?;
-        st.gram.load(&values, windows)?;
+        st.gram.load(values, windows)?;
         st.experiments = experiments;
         Ok(st)
     }

@@ -87,6 +87,10 @@ struct PullArgs {
     /// Write the raw statistics here (JSON: dimensions, windows, packed Gram).
     #[arg(long)]
     stats: Option<PathBuf>,
+    /// Write the statistics here in the mergeable binary encoding (docs/wire.md section 7),
+    /// for `lpvid pbsid --stats A --stats B ...` (extended statistics only).
+    #[arg(long, value_name = "S.lpvs")]
+    stats_out: Option<PathBuf>,
     /// Check against this data file: the host accumulates the same statistics and fits the
     /// file; fails if they differ by more than the tolerances.
     #[arg(long)]
@@ -179,6 +183,9 @@ fn local_inputs(a: &DeviceArgs) -> Result<Local, CliError> {
             }
             if let Some(o) = &p.stats {
                 outs.push(("--stats", o.as_path()));
+            }
+            if let Some(o) = &p.stats_out {
+                outs.push(("--stats-out", o.as_path()));
             }
             check_paths(&inputs, &outs)?;
             match &p.compare {
@@ -412,6 +419,16 @@ fn pull_cmd(
             serde_json::to_string(&v).unwrap_or_default().as_bytes(),
         )?;
         res["stats_file"] = json!(path.display().to_string());
+    }
+    if let Some(path) = &p.stats_out {
+        if layout != StatsLayout::Extended {
+            return Err(CliError::Invalid(
+                "--stats-out needs the extended statistics: stream without --plain".into(),
+            ));
+        }
+        let merged = crate::statistics::Statistics::from_packed(dims, &vals, st.windows, 1)?;
+        outputs.bytes(path, &merged.to_bytes())?;
+        res["stats_out"] = json!(path.display().to_string());
     }
     if let Some(path) = &p.out {
         if layout != StatsLayout::Extended {

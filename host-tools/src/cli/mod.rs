@@ -10,6 +10,7 @@ mod diagnose;
 mod files;
 mod pbsid;
 mod stability;
+mod stats;
 mod validate;
 
 use std::ffi::OsString;

@@ -17,14 +17,19 @@ use crate::pipeline::{self, reg_name, DataFile, Identified, PbsidSettings};
 #[derive(Debug, Args)]
 pub struct PbsidArgs {
     /// Training data (CSV: u1.., y1.., p1.. columns).
-    #[arg(long)]
-    pub train: PathBuf,
+    #[arg(long, required_unless_present = "stats")]
+    pub train: Option<PathBuf>,
+    /// Identify from statistics files instead of a data file (`lpvid device pull
+    /// --stats-out`, or `lpvid.Statistics.to_bytes()` in Python); repeat to merge several
+    /// experiments or devices into one fit (primal form; the least-squares observer gain).
+    #[arg(long, value_name = "S.lpvs", conflicts_with_all = ["train", "val", "kernel", "kernel_rows", "refine", "bpdn_score"])]
+    pub stats: Vec<PathBuf>,
     /// Validation data, scored by free-run simulation after the fit.
     #[arg(long)]
     pub val: Option<PathBuf>,
-    /// Past window p.
-    #[arg(long)]
-    pub past: usize,
+    /// Past window p (with --stats: taken from the statistics; if given, it must agree).
+    #[arg(long, required_unless_present = "stats")]
+    pub past: Option<usize>,
     /// Future window f <= p (row blocks of Gamma K Z used for the SVD); default p.
     #[arg(long)]
     pub future: Option<usize>,
@@ -94,8 +99,8 @@ pub struct PbsidArgs {
     pub json: bool,
 }
 
-fn pbsid_options(a: &PbsidArgs) -> PbsidOptions {
-    let mut o = PbsidOptions::new(a.past);
+pub(super) fn pbsid_options(a: &PbsidArgs, past: usize) -> PbsidOptions {
+    let mut o = PbsidOptions::new(past);
     o.order = a.order;
     o.reg = a.reg;
     o.feedthrough = !a.no_feedthrough;
@@ -252,13 +257,16 @@ pub(super) fn run(a: &PbsidArgs, ui: Ui, out: &mut dyn Write) -> Result<(), CliE
             reg_name(a.reg)
         )));
     }
-    let mut inputs = vec![("--train", a.train.as_path())];
+    let (Some(train_path), Some(past)) = (&a.train, a.past) else {
+        return super::stats::run_pbsid(a, ui, out);
+    };
+    let mut inputs = vec![("--train", train_path.as_path())];
     if let Some(v) = &a.val {
         inputs.push(("--val", v.as_path()));
     }
     check_paths(&inputs, &[("--out", a.out.as_path())])?;
     let settings = PbsidSettings {
-        fit: pbsid_options(a),
+        fit: pbsid_options(a, past),
         observer: ObserverRequest {
             hinf: a.observer == "hinf",
             ranges: a.scheduling_range.clone(),
@@ -268,8 +276,8 @@ pub(super) fn run(a: &PbsidArgs, ui: Ui, out: &mut dyn Write) -> Result<(), CliE
             },
         },
     };
-    let spin = ui.spinner(&format!("reading {}", a.train.display()));
-    let train = DataFile::read(&a.train)?;
+    let spin = ui.spinner(&format!("reading {}", train_path.display()));
+    let train = DataFile::read(train_path)?;
     let val = match &a.val {
         Some(p) => {
             spin.set_message(format!("reading {}", p.display()));
@@ -279,7 +287,7 @@ pub(super) fn run(a: &PbsidArgs, ui: Ui, out: &mut dyn Write) -> Result<(), CliE
     };
     spin.set_message(format!(
         "fitting LPV-PBSID_opt (p = {}, {} samples)",
-        a.past,
+        past,
         train.data.len()
     ));
     let run = pipeline::identify(&train, val.as_ref(), &settings);
