@@ -170,6 +170,22 @@ pub fn pbsid_warnings(
             train.vaf_mean, train.file
         ));
     }
+    if opts.order == crate::pbsid::Order::Auto {
+        let f = opts.future.unwrap_or(p);
+        if fit.singular_values.len() <= 1 {
+            w.push(format!(
+                "order 1 forced: only {} singular value(s) of Gamma K Z (future window f = {f} \
+                 times the outputs); try a larger --future or --past",
+                fit.singular_values.len()
+            ));
+        } else if fit.order >= opts.max_order && opts.max_order < fit.singular_values.len() {
+            w.push(format!(
+                "the order {} is the largest --max-order allows: the singular-value gap may lie \
+                 beyond it; try a larger --max-order or a fixed --order",
+                fit.order
+            ));
+        }
+    }
     if obs.max_rho >= 1.0 {
         w.push(format!(
             "UNSTABLE predictor: the one-step predictor A(mu) - K(mu) C has spectral radius \

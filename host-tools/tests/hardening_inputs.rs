@@ -176,6 +176,29 @@ fn a_degenerate_fit_warns_and_says_what_to_try() {
 }
 
 #[test]
+fn an_order_capped_by_max_order_warns() {
+    let dir = tempfile::tempdir().unwrap();
+    let t = concat!(env!("CARGO_MANIFEST_DIR"), "/../fixtures/b1-train.csv");
+    let out = dir.path().join("m.json");
+    let (code, _, err) = binary(&[
+        "pbsid",
+        "--train",
+        t,
+        "--past",
+        "2",
+        "--max-order",
+        "1",
+        "--out",
+        s(&out),
+    ]);
+    assert_eq!(code, 0, "{err}");
+    assert!(err.contains("largest --max-order allows"), "{err}");
+    // the default leaves room: no warning on the fixture
+    let (_, _, err) = binary(&["pbsid", "--train", t, "--past", "2", "--out", s(&out)]);
+    assert!(!err.contains("max-order"), "{err}");
+}
+
+#[test]
 fn max_order_zero_and_negative_past_are_usage_errors() {
     let dir = tempfile::tempdir().unwrap();
     let t = write(dir.path(), "t.csv", &rows("u1,y1,p1", 100));

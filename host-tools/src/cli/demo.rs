@@ -41,6 +41,7 @@ pub(super) fn run(a: &DemoArgs, out: &mut dyn Write) -> Result<(), CliError> {
         outputs.model(&run.model, p)?;
         outputs.commit()?;
     }
+    super::print_warnings(&run.warnings);
     if a.json {
         return print_json(out, &pbsid_json(&run, a.out.as_deref()));
     }
