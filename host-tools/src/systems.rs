@@ -223,14 +223,7 @@ pub fn simulate_wv(
     out
 }
 
-/// Spectral radius of a square matrix (largest eigenvalue modulus).
-pub fn spectral_radius(a: &DMatrix<f64>) -> f64 {
-    a.clone()
-        .complex_eigenvalues()
-        .iter()
-        .map(|c| c.norm())
-        .fold(0.0, f64::max)
-}
+pub use crate::linalg::spectral_radius;
 
 /// Eigenvalues of each local matrix A^(i) of a model (what the kernel paper's Fig. 2 plots).
 pub fn local_eigenvalues(model: &LpvSs) -> Vec<Vec<Complex<f64>>> {

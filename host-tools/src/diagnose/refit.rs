@@ -52,7 +52,13 @@ pub enum RefitError {
     /// The model or data are outside what this refit handles.
     #[error("{0}")]
     Unsupported(String),
-    /// A least-squares or eigen step failed, or a simulation diverged.
+    /// A least-squares step on the moments failed.
+    #[error(transparent)]
+    Moments(#[from] super::stats::StatsError),
+    /// An eigen decomposition failed.
+    #[error(transparent)]
+    Linalg(#[from] crate::linalg::LinalgError),
+    /// A least-squares step gave non-finite values, or a simulation diverged.
     #[error("{0}")]
     Numerical(String),
 }
@@ -60,12 +66,6 @@ pub enum RefitError {
 impl From<lpvid::Error> for RefitError {
     fn from(e: lpvid::Error) -> Self {
         RefitError::Core(e)
-    }
-}
-
-impl From<String> for RefitError {
-    fn from(e: String) -> Self {
-        RefitError::Numerical(e)
     }
 }
 

@@ -18,21 +18,6 @@ pub enum StatsError {
     Linalg(#[from] LinalgError),
 }
 
-// The refits of [`super::refit`] report numerical failures as
-// `RefitError::Numerical` with the message; these keep their `?` working on the typed
-// errors until they get variants of their own.
-impl From<StatsError> for super::RefitError {
-    fn from(e: StatsError) -> Self {
-        super::RefitError::Numerical(e.to_string())
-    }
-}
-
-impl From<LinalgError> for super::RefitError {
-    fn from(e: LinalgError) -> Self {
-        super::RefitError::Numerical(e.to_string())
-    }
-}
-
 // ------------------------------------------------------------------------------------------
 // Distributions
 // ------------------------------------------------------------------------------------------
