@@ -132,14 +132,15 @@ pub fn fit_with_validation(
             if primal_cost <= dual_cost {
                 (
                     Solver::Primal,
-                    format!("primal: q = {} regressors for {windows} windows", q + r_ft),
+                    format!(
+                        "primal: q = {q} regressors (+ {r_ft} feedthrough) for {windows} windows"
+                    ),
                 )
             } else {
                 (
                     Solver::Dual,
                     format!(
-                        "kernel: q = {} regressors exceed what {windows} windows make cheaper in the dual",
-                        q + r_ft
+                        "kernel: q = {q} regressors (+ {r_ft} feedthrough) exceed what {windows} windows make cheaper in the dual"
                     ),
                 )
             }
