@@ -61,6 +61,21 @@ pub fn min_norm_from_normal(
     Ok((scaled * vecs.transpose(), rank))
 }
 
+/// Below this dimension the dense reductions run on the calling thread: a thread pool's
+/// spin-up and hand-offs cost more than they gain on problems of a few milliseconds
+/// (measured in `benches/spine.rs`, `tridiagonal_seq_vs_par`).
+pub const PAR_MIN_DIM: usize = 600;
+
+/// faer's parallelism for a dense reduction of dimension `n`: the global one (the thread
+/// pool) from [`PAR_MIN_DIM`] on, sequential below.
+pub fn par_for(n: usize) -> faer::Par {
+    if n >= PAR_MIN_DIM {
+        faer::get_global_parallelism()
+    } else {
+        faer::Par::Seq
+    }
+}
+
 /// Vectors per batch of a host-side Gram update: enough to amortise streaming the packed
 /// matrix, few enough that the batch stays in cache.
 pub const GRAM_BATCH: usize = 64;
@@ -110,13 +125,285 @@ pub fn mean_std(v: impl Iterator<Item = f64> + Clone) -> (f64, f64) {
     (mean, var.sqrt())
 }
 
-/// Spectral radius of a square matrix.
+/// Spectral radius of a square matrix ([`SmallEig`], falling back to nalgebra's Schur
+/// decomposition should the QR iteration not converge).
 pub fn spectral_radius(a: &DMatrix<f64>) -> f64 {
+    let n = a.nrows();
+    let mut eig = SmallEig::default();
+    let rows = eig.load(n);
+    for i in 0..n {
+        for j in 0..n {
+            rows[i * n + j] = a[(i, j)];
+        }
+    }
+    eig.spectral_radius(n)
+        .unwrap_or_else(|| schur_spectral_radius(a))
+}
+
+/// Spectral radius by nalgebra's complex Schur decomposition (the reference
+/// [`SmallEig`] is checked against).
+pub fn schur_spectral_radius(a: &DMatrix<f64>) -> f64 {
     a.clone()
         .complex_eigenvalues()
         .iter()
         .map(|c| c.norm())
         .fold(0.0, f64::max)
+}
+
+/// Eigenvalues of small dense matrices without allocation per call: Householder reduction to
+/// upper Hessenberg form, then the Francis double-shift QR iteration on it (eigenvalues
+/// only, EISPACK `hqr` as in Numerical Recipes section 11.6). The frozen-scheduling
+/// stability checks solve thousands of these for n of a few states; nalgebra's Schur
+/// decomposition allocates and forms the Schur vectors each time, which made it most of a
+/// small fit's run time.
+#[derive(Debug, Default, Clone)]
+pub struct SmallEig {
+    /// The matrix, row-major, overwritten by its Hessenberg form and the QR iteration.
+    h: Vec<f64>,
+    /// Householder vector workspace.
+    v: Vec<f64>,
+}
+
+impl SmallEig {
+    /// The row-major n x n buffer to write the matrix into (contents unspecified).
+    pub fn load(&mut self, n: usize) -> &mut [f64] {
+        self.h.resize(n * n, 0.0);
+        self.v.resize(n, 0.0);
+        &mut self.h[..n * n]
+    }
+
+    /// Spectral radius of the matrix last written by [`SmallEig::load`] (destroyed); `None`
+    /// when the QR iteration did not converge in 30 iterations per eigenvalue or the matrix
+    /// holds a non-finite entry.
+    pub fn spectral_radius(&mut self, n: usize) -> Option<f64> {
+        let mut rho: f64 = 0.0;
+        self.eigenvalues(n, |re, im| rho = rho.max(re.hypot(im)))?;
+        Some(rho)
+    }
+
+    /// Reduce to Hessenberg form and run the QR iteration, calling `each(re, im)` once per
+    /// eigenvalue; `None` as in [`SmallEig::spectral_radius`].
+    fn eigenvalues(&mut self, n: usize, mut each: impl FnMut(f64, f64)) -> Option<()> {
+        let h = &mut self.h[..n * n];
+        if h.iter().any(|x| !x.is_finite()) {
+            return None;
+        }
+        hessenberg(h, n, &mut self.v[..n]);
+        hqr(h, n, &mut each)
+    }
+}
+
+/// Householder reduction of the row-major n x n `a` to upper Hessenberg form in place
+/// (similarity, so the eigenvalues are kept); entries below the subdiagonal are zeroed.
+fn hessenberg(a: &mut [f64], n: usize, v: &mut [f64]) {
+    for k in 0..n.saturating_sub(2) {
+        let len = n - k - 1;
+        let mut norm2 = 0.0;
+        for i in 0..len {
+            v[i] = a[(k + 1 + i) * n + k];
+            norm2 += v[i] * v[i];
+        }
+        if norm2 == 0.0 {
+            continue;
+        }
+        let alpha = if v[0] >= 0.0 {
+            -norm2.sqrt()
+        } else {
+            norm2.sqrt()
+        };
+        let vv = norm2 - v[0] * v[0] + (v[0] - alpha) * (v[0] - alpha);
+        v[0] -= alpha;
+        if vv == 0.0 {
+            continue;
+        }
+        // left: rows k+1.. of columns k..
+        for j in k..n {
+            let mut s = 0.0;
+            for i in 0..len {
+                s += v[i] * a[(k + 1 + i) * n + j];
+            }
+            let f = 2.0 * s / vv;
+            for i in 0..len {
+                a[(k + 1 + i) * n + j] -= f * v[i];
+            }
+        }
+        // right: columns k+1.. of every row
+        for i in 0..n {
+            let row = &mut a[i * n + k + 1..i * n + n];
+            let s: f64 = row.iter().zip(&v[..len]).map(|(x, y)| x * y).sum();
+            let f = 2.0 * s / vv;
+            for (x, y) in row.iter_mut().zip(&v[..len]) {
+                *x -= f * y;
+            }
+        }
+        a[(k + 1) * n + k] = alpha;
+        for i in k + 2..n {
+            a[i * n + k] = 0.0;
+        }
+    }
+}
+
+/// Eigenvalues of the row-major upper Hessenberg `a` (destroyed) by the Francis double-shift
+/// QR iteration (EISPACK `hqr`; Numerical Recipes 2nd ed. section 11.6, kept in its 1-based
+/// indexing); `None` after 30 iterations on one eigenvalue.
+#[allow(clippy::many_single_char_names)]
+fn hqr(a: &mut [f64], n: usize, each: &mut impl FnMut(f64, f64)) -> Option<()> {
+    macro_rules! at {
+        ($i:expr, $j:expr) => {
+            a[($i - 1) * n + ($j - 1)]
+        };
+    }
+    let sign = |a: f64, b: f64| if b >= 0.0 { a.abs() } else { -a.abs() };
+    let mut anorm = 0.0;
+    for i in 1..=n {
+        for j in i.saturating_sub(1).max(1)..=n {
+            anorm += at!(i, j).abs();
+        }
+    }
+    let mut nn = n;
+    let mut t = 0.0;
+    while nn >= 1 {
+        let mut its = 0;
+        loop {
+            let mut l = nn;
+            while l >= 2 {
+                let mut s = at!(l - 1, l - 1).abs() + at!(l, l).abs();
+                if s == 0.0 {
+                    s = anorm;
+                }
+                if at!(l, l - 1).abs() + s == s {
+                    at!(l, l - 1) = 0.0;
+                    break;
+                }
+                l -= 1;
+            }
+            let mut x = at!(nn, nn);
+            if l == nn {
+                each(x + t, 0.0);
+                nn -= 1;
+            } else {
+                let mut y = at!(nn - 1, nn - 1);
+                let mut w = at!(nn, nn - 1) * at!(nn - 1, nn);
+                if l == nn - 1 {
+                    let p = 0.5 * (y - x);
+                    let q = p * p + w;
+                    let mut z = q.abs().sqrt();
+                    x += t;
+                    if q >= 0.0 {
+                        z = p + sign(z, p);
+                        each(x + z, 0.0);
+                        each(if z != 0.0 { x - w / z } else { x + z }, 0.0);
+                    } else {
+                        each(x + p, z);
+                        each(x + p, -z);
+                    }
+                    nn -= 2;
+                } else {
+                    if its == 30 {
+                        return None;
+                    }
+                    if its == 10 || its == 20 {
+                        t += x;
+                        for i in 1..=nn {
+                            at!(i, i) -= x;
+                        }
+                        let s = at!(nn, nn - 1).abs() + at!(nn - 1, nn - 2).abs();
+                        x = 0.75 * s;
+                        y = x;
+                        w = -0.4375 * s * s;
+                    }
+                    its += 1;
+                    let mut m = nn - 2;
+                    let (mut p, mut q, mut r, mut z);
+                    loop {
+                        z = at!(m, m);
+                        let r0 = x - z;
+                        let s0 = y - z;
+                        p = (r0 * s0 - w) / at!(m + 1, m) + at!(m, m + 1);
+                        q = at!(m + 1, m + 1) - z - r0 - s0;
+                        r = at!(m + 2, m + 1);
+                        let s = p.abs() + q.abs() + r.abs();
+                        p /= s;
+                        q /= s;
+                        r /= s;
+                        if m == l {
+                            break;
+                        }
+                        let u = at!(m, m - 1).abs() * (q.abs() + r.abs());
+                        let v =
+                            p.abs() * (at!(m - 1, m - 1).abs() + z.abs() + at!(m + 1, m + 1).abs());
+                        if u + v == v {
+                            break;
+                        }
+                        m -= 1;
+                    }
+                    for i in m + 2..=nn {
+                        at!(i, i - 2) = 0.0;
+                        if i != m + 2 {
+                            at!(i, i - 3) = 0.0;
+                        }
+                    }
+                    let mut k = m;
+                    while k < nn {
+                        if k != m {
+                            p = at!(k, k - 1);
+                            q = at!(k + 1, k - 1);
+                            r = 0.0;
+                            if k != nn - 1 {
+                                r = at!(k + 2, k - 1);
+                            }
+                            x = p.abs() + q.abs() + r.abs();
+                            if x != 0.0 {
+                                p /= x;
+                                q /= x;
+                                r /= x;
+                            }
+                        }
+                        let s = sign((p * p + q * q + r * r).sqrt(), p);
+                        if s != 0.0 {
+                            if k == m {
+                                if l != m {
+                                    at!(k, k - 1) = -at!(k, k - 1);
+                                }
+                            } else {
+                                at!(k, k - 1) = -s * x;
+                            }
+                            p += s;
+                            x = p / s;
+                            y = q / s;
+                            z = r / s;
+                            q /= p;
+                            r /= p;
+                            for j in k..=nn {
+                                p = at!(k, j) + q * at!(k + 1, j);
+                                if k != nn - 1 {
+                                    p += r * at!(k + 2, j);
+                                    at!(k + 2, j) -= p * z;
+                                }
+                                at!(k + 1, j) -= p * y;
+                                at!(k, j) -= p * x;
+                            }
+                            let mmin = if nn < k + 3 { nn } else { k + 3 };
+                            for i in l..=mmin {
+                                p = x * at!(i, k) + y * at!(i, k + 1);
+                                if k != nn - 1 {
+                                    p += z * at!(i, k + 2);
+                                    at!(i, k + 2) -= p * r;
+                                }
+                                at!(i, k + 1) -= p * q;
+                                at!(i, k) -= p;
+                            }
+                        }
+                        k += 1;
+                    }
+                }
+            }
+            if nn < 2 || l >= nn - 1 {
+                break;
+            }
+        }
+    }
+    Some(())
 }
 
 /// Column vector from a slice.
@@ -146,8 +433,14 @@ pub struct Tridiagonal {
 }
 
 impl Tridiagonal {
-    /// Reduce the symmetric matrix `a` (its lower triangle is read).
+    /// Reduce the symmetric matrix `a` (its lower triangle is read); on the thread pool
+    /// only from [`PAR_MIN_DIM`] rows on ([`par_for`]).
     pub fn new(a: &DMatrix<f64>) -> Tridiagonal {
+        Self::new_with(a, par_for(a.nrows()))
+    }
+
+    /// As [`Tridiagonal::new`] with the parallelism given (the benches compare both).
+    pub fn new_with(a: &DMatrix<f64>, par: faer::Par) -> Tridiagonal {
         use faer::dyn_stack::{MemBuffer, MemStack};
         use faer::linalg::evd::tridiag;
         let n = a.nrows();
@@ -155,7 +448,6 @@ impl Tridiagonal {
         let bs = faer::linalg::qr::no_pivoting::factor::recommended_block_size::<f64>(n, n);
         let mut h = faer::Mat::<f64>::zeros(bs.max(1), n.saturating_sub(1));
         if n > 0 {
-            let par = faer::get_global_parallelism();
             let mut buf = MemBuffer::new(tridiag::tridiag_in_place_scratch::<f64>(
                 n,
                 par,
@@ -193,7 +485,7 @@ impl Tridiagonal {
         assert_eq!(b.nrows(), n);
         let mut x = faer::Mat::<f64>::from_fn(n, k, |i, j| b[(i, j)]);
         if n > 1 {
-            let par = faer::get_global_parallelism();
+            let par = par_for(n);
             let bs = self.factors.nrows();
             let ess = self.reflectors.as_ref().submatrix(1, 0, n - 1, n - 1);
             let rows = x.as_mut().subrows_mut(1, n - 1);
@@ -461,6 +753,63 @@ impl ShiftedLdl {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn small_eig_spectral_radius_matches_schur() {
+        use rand::{Rng, SeedableRng};
+        let mut rng = rand::rngs::StdRng::seed_from_u64(0x5eed_0016);
+        let mut worst: f64 = 0.0;
+        for trial in 0..3000 {
+            let n = 1 + trial % 12;
+            let mut a = DMatrix::from_fn(n, n, |_, _| rng.gen_range(-1.0..1.0));
+            match trial % 5 {
+                // companion (non-normal, clustered roots), as the LPV predictors are
+                1 => {
+                    a.fill(0.0);
+                    for j in 0..n {
+                        a[(0, j)] = rng.gen_range(-1.5..1.5);
+                    }
+                    for i in 1..n {
+                        a[(i, i - 1)] = 1.0;
+                    }
+                }
+                // repeated eigenvalues and exact zeros
+                2 => {
+                    a.fill_upper_triangle(0.0, 1);
+                    for i in 0..n {
+                        a[(i, i)] = 0.5;
+                    }
+                }
+                // widely scaled rows and columns
+                3 => {
+                    for i in 0..n {
+                        let f = 10f64.powi(i as i32 % 4 - 2);
+                        a.row_mut(i).scale_mut(f);
+                        a.column_mut(i).scale_mut(1.0 / f);
+                    }
+                }
+                _ => {}
+            }
+            let fast = spectral_radius(&a);
+            let slow = schur_spectral_radius(&a);
+            let err = (fast - slow).abs() / slow.max(1e-300);
+            worst = worst.max(if trial % 5 == 2 { 0.0 } else { err });
+            // a defective eigenvalue (case 2: one Jordan block) is only determined to
+            // eps^(1/n) by any backward-stable method
+            let tol = if trial % 5 == 2 {
+                10.0 * f64::EPSILON.powf(1.0 / n as f64)
+            } else {
+                1e-9
+            };
+            assert!(err < tol, "n = {n}, trial {trial}: {fast} vs {slow}");
+        }
+        assert!(worst < 1e-9, "{worst}");
+        assert_eq!(spectral_radius(&DMatrix::zeros(3, 3)), 0.0);
+        assert_eq!(spectral_radius(&DMatrix::zeros(0, 0)), 0.0);
+        let rot = DMatrix::from_row_slice(2, 2, &[0.0, -2.0, 2.0, 0.0]);
+        assert!((spectral_radius(&rot) - 2.0).abs() < 1e-15);
+    }
+
     #[test]
     fn eig_and_min_norm() {
         let a = DMatrix::from_row_slice(3, 3, &[4.0, 1.0, 0.0, 1.0, 3.0, 0.5, 0.0, 0.5, 2.0]);

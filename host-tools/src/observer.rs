@@ -71,7 +71,7 @@ use clarabel::solver::{
 use nalgebra::{DMatrix, DVector};
 use serde_json::{json, Value};
 
-use crate::linalg::{spectral_radius, sym_eig, LinalgError};
+use crate::linalg::{schur_spectral_radius, spectral_radius, sym_eig, LinalgError, SmallEig};
 use crate::lpvss::{scheduled, LpvSs, ShapeError, Signals};
 
 /// Default strictness margin delta of the LMIs (normalised units, see the module docs).
@@ -1237,13 +1237,197 @@ pub fn predictor_matrix(model: &LpvSs, mu: &DVector<f64>) -> DMatrix<f64> {
     model.a_at(mu) - scheduled(&model.k, mu) * scheduled(&model.c, mu)
 }
 
-/// Largest spectral radius of the frozen predictor over a grid of the box.
-pub fn max_predictor_radius(model: &LpvSs, sbox: &SchedBox, per_dim: usize) -> f64 {
-    sbox.grid(per_dim)
-        .iter()
-        .map(|mu| spectral_radius(&predictor_matrix(model, mu)))
-        .fold(0.0, f64::max)
+/// The frozen predictor A(mu) - K(mu) C(mu) = sum_i w_i A_i - sum_ij w_i w_j K_i C_j with the
+/// products K_i C_j formed once, evaluated into a reused buffer and its spectral radius
+/// taken by [`SmallEig`]: the stability region and the box maximum evaluate it thousands of
+/// times, each a few hundred flops instead of several allocating matrix products and a
+/// Schur decomposition.
+struct PredictorFamily {
+    n: usize,
+    /// A_i and -K_i C_j with their weights.
+    terms: Vec<Term>,
+    eig: SmallEig,
 }
+
+/// One term of [`PredictorFamily`]: the weights' indices into mu (None: weight 1) and the
+/// signed matrix, row-major.
+type Term = (Option<usize>, Option<usize>, Vec<f64>);
+
+impl PredictorFamily {
+    fn new(model: &LpvSs) -> PredictorFamily {
+        let n = model.n();
+        let weight = |len: usize, i: usize| (len > 1).then_some(i);
+        let row_major = |m: &DMatrix<f64>, sign: f64| {
+            let mut v = vec![0.0; n * n];
+            for i in 0..n {
+                for j in 0..n {
+                    v[i * n + j] = sign * m[(i, j)];
+                }
+            }
+            v
+        };
+        let mut terms = Vec::new();
+        for (i, a) in model.a.iter().enumerate() {
+            terms.push((weight(model.a.len(), i), None, row_major(a, 1.0)));
+        }
+        for (i, k) in model.k.iter().enumerate() {
+            for (j, c) in model.c.iter().enumerate() {
+                let kc = k * c;
+                terms.push((
+                    weight(model.k.len(), i),
+                    weight(model.c.len(), j),
+                    row_major(&kc, -1.0),
+                ));
+            }
+        }
+        PredictorFamily {
+            n,
+            terms,
+            eig: SmallEig::default(),
+        }
+    }
+
+    /// Spectral radius of A(mu) - K(mu) C(mu) (`mu` = [1, p1, ..., ps]).
+    fn rho(&mut self, mu: &[f64]) -> f64 {
+        let n = self.n;
+        Self::fill(&self.terms, self.eig.load(n), mu);
+        self.eig.spectral_radius(n).unwrap_or_else(|| {
+            let mut buf = vec![0.0; n * n];
+            Self::fill(&self.terms, &mut buf, mu);
+            schur_spectral_radius(&DMatrix::from_row_slice(n, n, &buf))
+        })
+    }
+
+    /// Write the predictor matrix at `mu` (row-major) into `buf`.
+    fn fill(terms: &[Term], buf: &mut [f64], mu: &[f64]) {
+        buf.fill(0.0);
+        let at = |i: &Option<usize>| i.map_or(1.0, |i| mu.get(i).copied().unwrap_or(0.0));
+        for (i, j, m) in terms {
+            let w = at(i) * at(j);
+            for (b, x) in buf.iter_mut().zip(m) {
+                *b += w * x;
+            }
+        }
+    }
+}
+
+/// Largest spectral radius of the frozen predictor over a grid of the box: the lattice of
+/// [`SchedBox::grid`] (`per_dim` points per signal, capped at [`MAX_GRID_POINTS`]).
+///
+/// The lattice is not visited point by point: every [`CLIMB_STRIDE`]-th point of it (edges
+/// included) is evaluated, and from the best [`CLIMB_STARTS`] of those a steepest ascent
+/// over the lattice's neighbours (all 3^s - 1 of them) climbs to a lattice maximum. The
+/// answer is a lattice point's value like the dense sweep's, and the same whenever the
+/// largest value lies on a hill the coarse lattice sees (the spectral radius is continuous
+/// in mu); [`max_predictor_radius_dense`] is the sweep of every point it is checked against.
+pub fn max_predictor_radius(model: &LpvSs, sbox: &SchedBox, per_dim: usize) -> f64 {
+    let mut fam = PredictorFamily::new(model);
+    let s = sbox.dim();
+    if s == 0 {
+        return fam.rho(&[1.0]);
+    }
+    let g = lattice_side(s, per_dim);
+    let coarse: Vec<usize> = (0..g)
+        .step_by(CLIMB_STRIDE)
+        .chain(((g - 1) % CLIMB_STRIDE != 0).then_some(g - 1))
+        .collect();
+    let mut mu = vec![1.0; s + 1];
+    let mut eval = |idx: &[usize], fam: &mut PredictorFamily| {
+        for j in 0..s {
+            let t = idx[j] as f64 / (g - 1) as f64;
+            mu[j + 1] = sbox.lo[j] + t * (sbox.hi[j] - sbox.lo[j]);
+        }
+        fam.rho(&mu)
+    };
+    // the coarse lattice, best first
+    let mut best: Vec<(f64, Vec<usize>)> = Vec::new();
+    let mut idx = vec![0; s];
+    for mut c in 0..coarse.len().pow(s as u32) {
+        for v in idx.iter_mut() {
+            *v = coarse[c % coarse.len()];
+            c /= coarse.len();
+        }
+        let r = eval(&idx, &mut fam);
+        best.push((if r.is_nan() { f64::NEG_INFINITY } else { r }, idx.clone()));
+    }
+    best.sort_by(|a, b| b.0.total_cmp(&a.0));
+    let mut worst = best[0].0.max(0.0);
+    let mut seen = std::collections::HashMap::new();
+    for (r0, start) in best.into_iter().take(CLIMB_STARTS) {
+        let (mut here, mut at) = (r0, start);
+        loop {
+            let mut step: Option<(f64, Vec<usize>)> = None;
+            for code in 0..3usize.pow(s as u32) {
+                let mut nb = at.clone();
+                let mut c = code;
+                let mut moved = false;
+                let mut inside = true;
+                for v in nb.iter_mut() {
+                    match c % 3 {
+                        1 if *v + 1 < g => *v += 1,
+                        2 if *v > 0 => *v -= 1,
+                        0 => {}
+                        _ => inside = false,
+                    }
+                    moved |= c % 3 != 0;
+                    c /= 3;
+                }
+                if !moved || !inside {
+                    continue;
+                }
+                let r = *seen
+                    .entry(nb.clone())
+                    .or_insert_with(|| eval(&nb, &mut fam));
+                let r = if r.is_nan() { f64::NEG_INFINITY } else { r };
+                if r > step.as_ref().map_or(here, |b| b.0) {
+                    step = Some((r, nb));
+                }
+            }
+            match step {
+                Some((r, nb)) => (here, at) = (r, nb),
+                None => break,
+            }
+        }
+        worst = worst.max(here);
+    }
+    worst
+}
+
+/// The dense sweep [`max_predictor_radius`] replaces: every point of the lattice.
+pub fn max_predictor_radius_dense(model: &LpvSs, sbox: &SchedBox, per_dim: usize) -> f64 {
+    let mut fam = PredictorFamily::new(model);
+    let s = sbox.dim();
+    if s == 0 {
+        return fam.rho(&[1.0]);
+    }
+    let g = lattice_side(s, per_dim);
+    let mut mu = vec![1.0; s + 1];
+    let mut worst: f64 = 0.0;
+    for mut idx in 0..g.pow(s as u32) {
+        for j in 0..s {
+            let t = (idx % g) as f64 / (g - 1) as f64;
+            idx /= g;
+            mu[j + 1] = sbox.lo[j] + t * (sbox.hi[j] - sbox.lo[j]);
+        }
+        worst = worst.max(fam.rho(&mu));
+    }
+    worst
+}
+
+/// Points per signal of the lattice [`SchedBox::grid`] builds for `per_dim`.
+fn lattice_side(s: usize, per_dim: usize) -> usize {
+    let mut g = per_dim.max(2);
+    while g.saturating_pow(s as u32) > MAX_GRID_POINTS && g > 2 {
+        g -= 1;
+    }
+    g
+}
+
+/// Lattice stride of the first pass of [`max_predictor_radius`].
+pub const CLIMB_STRIDE: usize = 4;
+
+/// Coarse points [`max_predictor_radius`] climbs from.
+pub const CLIMB_STARTS: usize = 3;
 
 /// The frozen-scheduling stability region of the predictor along one scheduling signal.
 #[derive(Debug, Clone, PartialEq)]
@@ -1311,7 +1495,9 @@ impl Region {
 /// For each scheduling signal j (the others at `reference`), the interval around
 /// `reference[j]` where the frozen predictor is stable (spectral radius < 1), searched over
 /// the operating interval widened by `widen` times its width on each side (at least 1),
-/// with a step of 1/200 of the operating width and the edges refined by bisection to 1e-6.
+/// with a step of 1/200 of the operating width where the radius is near 1 (up to
+/// [`MARCH_GROWTH`] times that where it is well below 1 and not rising fast) and the edges
+/// refined by bisection to 1e-6.
 pub fn stability_regions(
     model: &LpvSs,
     sbox: &SchedBox,
@@ -1327,12 +1513,13 @@ pub fn stability_regions(
                 lo.min(reference[j]) - widen.max(1.0) * w,
                 hi.max(reference[j]) + widen.max(1.0) * w,
             );
+            let fam = std::cell::RefCell::new(PredictorFamily::new(model));
             let rho = |v: f64| {
-                let mut mu = DVector::from_element(s + 1, 1.0);
+                let mut mu = vec![1.0; s + 1];
                 for i in 0..s {
                     mu[i + 1] = if i == j { v } else { reference[i] };
                 }
-                spectral_radius(&predictor_matrix(model, &mu))
+                fam.borrow_mut().rho(&mu)
             };
             let stable = |v: f64| rho(v) < 1.0;
             let v0 = reference[j];
@@ -1364,10 +1551,22 @@ pub fn stability_regions(
                 }
                 (good, false)
             };
+            // March out from the reference. Where the radius is well below 1 and not rising
+            // fast the step grows (up to MARCH_GROWTH fine steps), to half the distance at
+            // which the last two values extrapolate to 1; near the edge it is the fine step.
             let edge = |dir: f64, limit: f64| -> (f64, bool) {
                 let mut inside = v0;
+                let mut r_in = rho(v0);
+                let mut slope = 0.0f64;
                 loop {
-                    let next = inside + dir * step;
+                    let room = if slope > 0.0 {
+                        0.5 * (1.0 - r_in) / slope
+                    } else {
+                        f64::INFINITY
+                    };
+                    let h = room.clamp(step, MARCH_GROWTH * step);
+                    let h = if 1.0 - r_in < MARCH_NEAR { step } else { h };
+                    let next = inside + dir * h;
                     if (dir > 0.0 && next > limit) || (dir < 0.0 && next < limit) {
                         return if stable(limit) {
                             (limit, true)
@@ -1375,10 +1574,13 @@ pub fn stability_regions(
                             bisect(inside, limit)
                         };
                     }
-                    if !stable(next) {
+                    let r_next = rho(next);
+                    if !stable_value(r_next) {
                         return bisect(inside, next);
                     }
+                    slope = (r_next - r_in) / h;
                     inside = next;
+                    r_in = r_next;
                 }
             };
             let (a, oa) = edge(-1.0, wlo);
@@ -1390,6 +1592,17 @@ pub fn stability_regions(
         })
         .collect()
 }
+
+/// A spectral radius that counts as stable (below 1; NaN is not).
+fn stable_value(r: f64) -> bool {
+    r < 1.0
+}
+
+/// Largest step of the stability-region march, in fine steps (1/200 of the operating width).
+pub const MARCH_GROWTH: f64 = 8.0;
+
+/// Within this of a spectral radius of 1 the march takes fine steps only.
+pub const MARCH_NEAR: f64 = 0.05;
 
 /// What `lpvid pbsid --observer ...` asks for.
 #[derive(Debug, Clone, Default)]
@@ -1715,6 +1928,114 @@ pub fn stability_report(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The fine-step march (1/200 of the operating width, no growth) the adaptive one of
+    /// [`stability_regions`] replaced: the first unstable fine step, bisected.
+    fn fine_march_edge(
+        model: &LpvSs,
+        reference: &[f64],
+        j: usize,
+        dir: f64,
+        step: f64,
+        limit: f64,
+    ) -> f64 {
+        let s = reference.len();
+        let mut fam = PredictorFamily::new(model);
+        let mut stable = |v: f64| {
+            let mut mu = vec![1.0; s + 1];
+            for i in 0..s {
+                mu[i + 1] = if i == j { v } else { reference[i] };
+            }
+            fam.rho(&mu) < 1.0
+        };
+        let mut inside = reference[j];
+        let (mut good, mut bad) = loop {
+            let next = inside + dir * step;
+            if (dir > 0.0 && next > limit) || (dir < 0.0 && next < limit) {
+                if stable(limit) {
+                    return limit;
+                }
+                break (inside, limit);
+            }
+            if !stable(next) {
+                break (inside, next);
+            }
+            inside = next;
+        };
+        while (good - bad).abs() > 1e-6 * (1.0 + good.abs()) {
+            let mid = 0.5 * (good + bad);
+            if stable(mid) {
+                good = mid;
+            } else {
+                bad = mid;
+            }
+        }
+        good
+    }
+
+    #[test]
+    fn fast_stability_report_equals_the_dense_one_on_fitted_models() {
+        use crate::pbsid::{fit, PbsidOptions};
+        use crate::systems;
+        let mut cases = 0;
+        for seed in 0..6u64 {
+            for (exp, p) in [
+                (systems::b1(600, 0.05, 7100 + seed), 2),
+                (systems::b2(200, 25.0, 7200 + seed), 4),
+                (systems::b3(250, 7300 + seed), 3),
+            ] {
+                let Ok(f) = fit(&exp.train, &PbsidOptions::new(p)) else {
+                    continue;
+                };
+                let names: Vec<String> = (0..exp.train.p.ncols())
+                    .map(|j| format!("p{}", j + 1))
+                    .collect();
+                let sbox = SchedBox::from_signals(&names, &exp.train);
+                let reference: Vec<f64> = (0..exp.train.p.ncols())
+                    .map(|j| exp.train.p.column(j).mean())
+                    .collect();
+                for per_dim in [REPORT_GRID, 31] {
+                    let fast = max_predictor_radius(&f.model, &sbox, per_dim);
+                    let dense = max_predictor_radius_dense(&f.model, &sbox, per_dim);
+                    assert!(
+                        (fast - dense).abs() <= 1e-12 * dense.max(1.0),
+                        "{} seed {seed}: {fast} vs {dense}",
+                        exp.name
+                    );
+                    // and the old per-point nalgebra evaluation on the lattice agrees
+                    if per_dim == 31 {
+                        let slow = sbox
+                            .grid(per_dim)
+                            .iter()
+                            .map(|mu| schur_spectral_radius(&predictor_matrix(&f.model, mu)))
+                            .fold(0.0, f64::max);
+                        assert!(
+                            (slow - dense).abs() <= 1e-10 * slow.max(1.0),
+                            "{slow} {dense}"
+                        );
+                    }
+                }
+                for r in stability_regions(&f.model, &sbox, &reference, REGION_WIDEN) {
+                    let j = r.index;
+                    let w = (sbox.hi[j] - sbox.lo[j]).abs().max(1e-3);
+                    let wlo = sbox.lo[j].min(reference[j]) - REGION_WIDEN * w;
+                    let whi = sbox.hi[j].max(reference[j]) + REGION_WIDEN * w;
+                    let Some((a, b)) = r.interval else { continue };
+                    let a0 = fine_march_edge(&f.model, &reference, j, -1.0, w / 200.0, wlo);
+                    let b0 = fine_march_edge(&f.model, &reference, j, 1.0, w / 200.0, whi);
+                    let tol = 4e-6 * (1.0 + a0.abs().max(b0.abs()));
+                    assert!(
+                        (a - a0).abs() <= tol && (b - b0).abs() <= tol,
+                        "{} seed {seed} p{}: [{a}, {b}] vs fine march [{a0}, {b0}]",
+                        exp.name,
+                        j + 1
+                    );
+                    cases += 1;
+                }
+            }
+        }
+        assert!(cases >= 30, "{cases}");
+    }
 
     fn two() -> SchedBox {
         SchedBox {
