@@ -25,12 +25,29 @@ pub fn sym_eig(a: &DMatrix<f64>) -> Result<(Vec<f64>, DMatrix<f64>), LinalgError
     if n == 0 {
         return Ok((Vec::new(), DMatrix::zeros(0, 0)));
     }
+    use faer::dyn_stack::{MemBuffer, MemStack};
+    use faer::linalg::evd;
     let m = faer::Mat::<f64>::from_fn(n, n, |i, j| 0.5 * (a[(i, j)] + a[(j, i)]));
-    let eig = m
-        .self_adjoint_eigen(faer::Side::Lower)
-        .map_err(|e| LinalgError::Eigen(format!("{e:?}")))?;
-    let s = eig.S();
-    let u = eig.U();
+    // faer's `self_adjoint_eigen` asks the global parallelism, which starts the thread pool
+    // even for a 4 x 4: the driver with the parallelism of [`par_for`] instead
+    let par = par_for(n);
+    let mut u = faer::Mat::<f64>::zeros(n, n);
+    let mut s = faer::diag::Diag::<f64>::zeros(n);
+    let scratch = evd::self_adjoint_evd_scratch::<f64>(
+        n,
+        evd::ComputeEigenvectors::Yes,
+        par,
+        Default::default(),
+    );
+    evd::self_adjoint_evd(
+        m.as_ref(),
+        s.as_mut(),
+        Some(u.as_mut()),
+        par,
+        MemStack::new(&mut MemBuffer::new(scratch)),
+        Default::default(),
+    )
+    .map_err(|e| LinalgError::Eigen(format!("{e:?}")))?;
     let vals: Vec<f64> = (0..n).rev().map(|i| s[i]).collect();
     let vecs = DMatrix::from_fn(n, n, |i, j| u[(i, n - 1 - j)]);
     Ok((vals, vecs))
