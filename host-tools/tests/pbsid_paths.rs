@@ -79,3 +79,62 @@ fn kernel_form_equals_primal_form() {
         assert!(diff < 1e-5, "{reg:?}: relative output difference {diff}");
     }
 }
+
+/// The streamed primal fit (`pbsid::stream`, two passes over chunks overlapping by p
+/// samples) in `chunk`-sample pieces.
+fn streamed(
+    sig: &Signals,
+    o: &lpvid_host::pbsid::PbsidOptions,
+    chunk: usize,
+) -> lpvid_host::pbsid::PbsidFit {
+    use lpvid_host::pbsid::stream::PassOne;
+    let mut one = PassOne::new(sig.u.ncols(), sig.y.ncols(), sig.p.ncols(), o).unwrap();
+    let pieces: Vec<Signals> = (0..sig.len())
+        .step_by(chunk)
+        .map(|k| sig.slice(k, chunk.min(sig.len() - k)))
+        .collect();
+    for c in &pieces {
+        one.update(c).unwrap();
+    }
+    assert_eq!(one.samples(), sig.len());
+    let mut two = match one.finish(o) {
+        Ok(t) => t,
+        Err(e) => panic!("{e:?}"),
+    };
+    for c in &pieces {
+        two.update(c).unwrap();
+    }
+    two.finish().unwrap()
+}
+
+#[test]
+fn streamed_fit_equals_in_memory_fit_whatever_the_chunks() {
+    for (exp, p) in [
+        (systems::b1(1500, 0.05, 31), 2),
+        (systems::b2(400, 25.0, 32), 4),
+        (systems::b3(300, 33), 3),
+    ] {
+        for reg in [Reg::TikhonovGcv, Reg::None] {
+            let mut o = PbsidOptions::new(p);
+            o.reg = reg;
+            o.solver = Solver::Primal;
+            let mem = fit(&exp.train, &o).unwrap();
+            // chunks shorter than p, odd sizes, one chunk
+            for chunk in [1, p + 1, 97, exp.train.len()] {
+                let st = streamed(&exp.train, &o, chunk);
+                assert_eq!(mem.order, st.order, "{} chunk {chunk}", exp.name);
+                assert_eq!(mem.windows, st.windows);
+                for (a, b) in mem.singular_values.iter().zip(&st.singular_values) {
+                    assert!((a - b).abs() <= 1e-7 * mem.singular_values[0], "{a} {b}");
+                }
+                assert_eq!(mem.scaling, st.scaling, "sums in the same order");
+                let diff = max_output_diff(&mem.model, &st.model, &exp.val);
+                assert!(
+                    diff < 1e-7,
+                    "{} {reg:?} chunk {chunk}: relative output difference {diff}",
+                    exp.name
+                );
+            }
+        }
+    }
+}

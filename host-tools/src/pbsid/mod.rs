@@ -37,6 +37,7 @@ pub mod ridge;
 pub mod scaling;
 pub mod settings;
 pub mod sparse;
+pub mod stream;
 
 use lpvid::{stat_vector_len, Gram, PbsidDims, Slab, StatsLayout};
 
@@ -81,6 +82,17 @@ fn future(dims: &PbsidDims, opts: &PbsidOptions) -> Result<usize, FitError> {
     Ok(f)
 }
 
+/// The cheaper exact form of regression (13) for `qf` regressors (with the feedthrough
+/// columns), `windows` windows and past window `p`: operation counts of building and
+/// decomposing the primal statistics against the kernel matrix.
+pub(crate) fn primal_is_cheaper(qf: usize, windows: usize, p: usize) -> bool {
+    let qf = qf as f64;
+    let nb = windows as f64;
+    let primal_cost = nb * qf * qf / 2.0 + 10.0 * qf * qf * qf;
+    let dual_cost = nb * nb * (p * p) as f64 + 10.0 * nb * nb * nb;
+    primal_cost <= dual_cost
+}
+
 /// Identify an LPV state-space model with LPV-PBSID_opt from data (Algorithm 1 with the
 /// primal statistics, or Algorithm 2 in the kernel form, whichever is cheaper).
 pub fn fit(sig: &Signals, opts: &PbsidOptions) -> Result<PbsidFit, FitError> {
@@ -116,11 +128,7 @@ pub fn fit_with_validation(
     let rows = scaled_rows(sig, &scaling);
     let slab = Slab::new(&rows, r, l, m)?;
 
-    // The cheaper exact form: operation counts of building + decomposing each.
-    let qf = (q + r_ft) as f64;
-    let nb = windows as f64;
-    let primal_cost = nb * qf * qf / 2.0 + 10.0 * qf * qf * qf;
-    let dual_cost = nb * nb * (p * p) as f64 + 10.0 * nb * nb * nb;
+    let primal_cheaper = primal_is_cheaper(q + r_ft, windows, p);
     let (solver, solver_reason) = match opts.solver {
         _ if opts.kernel_rows.is_some() => (
             Solver::Dual,
@@ -129,7 +137,7 @@ pub fn fit_with_validation(
         Solver::Primal => (Solver::Primal, "primal form requested".to_string()),
         Solver::Dual => (Solver::Dual, "kernel form requested".to_string()),
         Solver::Auto => {
-            if primal_cost <= dual_cost {
+            if primal_cheaper {
                 (
                     Solver::Primal,
                     format!(

@@ -51,6 +51,33 @@ impl ChannelSums {
     }
 
     /// Read the sums from statistics of `layout` (channel block after the core part).
+    /// No samples yet (for [`ChannelSums::add`]).
+    pub(crate) fn empty(r: usize, l: usize, s: usize) -> ChannelSums {
+        ChannelSums {
+            count: 0.0,
+            u: vec![(0.0, 0.0); r],
+            y: vec![(0.0, 0.0); l],
+            p: vec![(0.0, 0.0); s],
+        }
+    }
+
+    /// Add the samples of `sig` after its first `skip` (a chunk of a record streamed in
+    /// order: summed in the same order as [`ChannelSums::from_signals`] of the whole).
+    pub(crate) fn add(&mut self, sig: &Signals, skip: usize) {
+        let add = |acc: &mut [(f64, f64)], m: &DMatrix<f64>| {
+            for (j, (a, b)) in acc.iter_mut().enumerate() {
+                for v in m.column(j).iter().skip(skip) {
+                    *a += v;
+                    *b += v * v;
+                }
+            }
+        };
+        add(&mut self.u, &sig.u);
+        add(&mut self.y, &sig.y);
+        add(&mut self.p, &sig.p);
+        self.count += sig.len().saturating_sub(skip) as f64;
+    }
+
     pub(crate) fn from_stats<S: AsRef<[f64]> + AsMut<[f64]>>(
         g: &Gram<f64, S>,
         dims: &PbsidDims,
@@ -119,6 +146,18 @@ impl ChannelSums {
 }
 
 /// The signals in scaled units laid out as the core's sample rows [u', y', mu'].
+impl Scaling {
+    /// No scaling (every factor 1, no centre): [`scaled_rows`] then gives the raw rows.
+    pub(crate) fn unit(dims: &PbsidDims) -> Scaling {
+        Scaling {
+            u: vec![1.0; dims.r],
+            y: vec![1.0; dims.l],
+            p_center: vec![0.0; dims.s],
+            p_scale: vec![1.0; dims.s],
+        }
+    }
+}
+
 pub(crate) fn scaled_rows(sig: &Signals, sc: &Scaling) -> Vec<f64> {
     let (n, r, l, s) = (sig.len(), sig.u.ncols(), sig.y.ncols(), sig.p.ncols());
     let w = r + l + s + 1;
