@@ -37,6 +37,7 @@ pub mod record;
 pub mod refine;
 pub mod simulate;
 pub mod statistics;
+pub mod stream;
 pub mod systems;
 
 pub use error::Error;

@@ -1766,7 +1766,7 @@ pub fn observer_step(
             }
         }
     } else {
-        lines.push("observer: least-squares K (eq. (6)-(7) with the innovation estimates)".into());
+        lines.push(LS_LINE.into());
         (
             ls_model.clone(),
             "ls",
@@ -1774,7 +1774,63 @@ pub fn observer_step(
             None,
         )
     };
-    let regions = stability_regions(&model, &sbox, &reference, REGION_WIDEN);
+    let scheduling = scheduling_json(names, sig);
+    Ok(finish_step(
+        model, used, record, regions_ls, sbox, &reference, lines, scheduling,
+    ))
+}
+
+/// The summary line of the least-squares observer.
+const LS_LINE: &str = "observer: least-squares K (eq. (6)-(7) with the innovation estimates)";
+
+/// The observer step of a fit whose data were streamed, not kept (`lpvid pbsid` in constant
+/// memory): the least-squares K only (the H-infinity design needs the state sequence), the
+/// box from the data's range `lo`..`hi` of each scheduling signal (then `req.ranges`), the
+/// others held at their `mean`.
+pub fn observer_step_streamed(
+    ls_model: &LpvSs,
+    names: &[String],
+    lo: &[f64],
+    hi: &[f64],
+    mean: &[f64],
+    req: &ObserverRequest,
+) -> Result<ObserverStep, ObserverError> {
+    if req.hinf {
+        return Err(ObserverError::NoStates);
+    }
+    let mut sbox = SchedBox {
+        names: names.to_vec(),
+        lo: lo.to_vec(),
+        hi: hi.to_vec(),
+        source: vec!["data".into(); lo.len()],
+    };
+    let scheduling = json!({"names": names, "min": sbox.lo, "max": sbox.hi, "mean": mean});
+    sbox.apply_ranges(&req.ranges)?;
+    Ok(finish_step(
+        ls_model.clone(),
+        "ls",
+        json!({"requested": "ls", "used": "ls"}),
+        None,
+        sbox,
+        mean,
+        vec![LS_LINE.into()],
+        scheduling,
+    ))
+}
+
+/// The stability report and summary lines common to every observer step.
+#[allow(clippy::too_many_arguments)]
+fn finish_step(
+    model: LpvSs,
+    used: &'static str,
+    record: Value,
+    regions_ls: Option<Vec<Region>>,
+    sbox: SchedBox,
+    reference: &[f64],
+    mut lines: Vec<String>,
+    scheduling: Value,
+) -> ObserverStep {
+    let regions = stability_regions(&model, &sbox, reference, REGION_WIDEN);
     let max_rho = max_predictor_radius(&model, &sbox, REPORT_GRID);
     if !regions.is_empty() {
         lines.push(format!(
@@ -1794,17 +1850,17 @@ pub fn observer_step(
             "predictor A - K C (no scheduling): spectral radius {max_rho:.4}"
         ));
     }
-    Ok(ObserverStep {
+    ObserverStep {
         model,
         used,
         record,
-        scheduling: scheduling_json(names, sig),
+        scheduling,
         regions,
         regions_ls,
         max_rho,
         sbox,
         lines,
-    })
+    }
 }
 
 /// The report of `lpvid stability`.

@@ -138,3 +138,57 @@ fn streamed_fit_equals_in_memory_fit_whatever_the_chunks() {
         }
     }
 }
+
+#[test]
+fn streamed_file_fit_gives_the_in_memory_model() {
+    use lpvid_host::model::ModelKind;
+    use lpvid_host::pipeline::{identify, DataFile, PbsidSettings};
+    use lpvid_host::stream::identify_streaming_chunks;
+    let path = std::path::Path::new("../fixtures/b1-train.csv");
+    let val = lpvid_host::data::Dataset::read_csv(std::path::Path::new("../fixtures/b1-val.csv"))
+        .unwrap();
+    for reg in [Reg::TikhonovGcv, Reg::None] {
+        let mut settings = PbsidSettings::new(3);
+        settings.fit.reg = reg;
+        let mem = identify(&DataFile::read(path).unwrap(), Some(&val), &settings).unwrap();
+        for chunk in [1, 5, 333, 4096] {
+            let st = identify_streaming_chunks(path, Some(&val), &settings, chunk).unwrap();
+            let (ModelKind::Ss(a), ModelKind::Ss(b)) = (&mem.model.kind, &st.model.kind) else {
+                panic!()
+            };
+            let diff = max_output_diff(a, b, &systems::b1(1000, 0.0, 99).val);
+            assert!(diff < 1e-7, "{reg:?} chunk {chunk}: {diff}");
+            assert_eq!(mem.fit.order, st.fit.order);
+            assert_eq!(mem.model.fit["train"], st.model.fit["train"], "file record");
+            assert_eq!(mem.samples, st.samples);
+            for (x, y) in mem.train_score.vaf.iter().zip(&st.train_score.vaf) {
+                assert!((x - y).abs() < 1e-6, "{x} {y}");
+            }
+            let (vm, vs) = (
+                mem.val_score.as_ref().unwrap(),
+                st.val_score.as_ref().unwrap(),
+            );
+            assert!(
+                (vm.vaf_mean - vs.vaf_mean).abs() < 1e-6,
+                "{} {}",
+                vm.vaf_mean,
+                vs.vaf_mean
+            );
+            assert!((mem.observer.max_rho - st.observer.max_rho).abs() < 1e-6);
+            assert_eq!(mem.observer.sbox.lo, st.observer.sbox.lo);
+            assert_eq!(mem.observer.sbox.hi, st.observer.sbox.hi);
+        }
+    }
+    // options that need the data are not streamed
+    let mut settings = PbsidSettings::new(3);
+    settings.fit.refine = true;
+    assert!(identify_streaming_chunks(path, None, &settings, 100).is_none());
+    // a bad file is left to the whole-file parser (its error names line and column)
+    let dir = tempfile::tempdir().unwrap();
+    let bad = dir.path().join("bad.csv");
+    let text = std::fs::read_to_string(path).unwrap();
+    let mut lines: Vec<String> = text.lines().map(String::from).collect();
+    lines[700] = lines[700].replacen(|c: char| c.is_ascii_digit(), "x", 1);
+    std::fs::write(&bad, lines.join("\n")).unwrap();
+    assert!(identify_streaming_chunks(&bad, None, &PbsidSettings::new(3), 100).is_none());
+}

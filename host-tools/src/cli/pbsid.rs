@@ -277,7 +277,6 @@ pub(super) fn run(a: &PbsidArgs, ui: Ui, out: &mut dyn Write) -> Result<(), CliE
         },
     };
     let spin = ui.spinner(&format!("reading {}", train_path.display()));
-    let train = DataFile::read(train_path)?;
     let val = match &a.val {
         Some(p) => {
             spin.set_message(format!("reading {}", p.display()));
@@ -285,12 +284,30 @@ pub(super) fn run(a: &PbsidArgs, ui: Ui, out: &mut dyn Write) -> Result<(), CliE
         }
         None => None,
     };
-    spin.set_message(format!(
-        "fitting LPV-PBSID_opt (p = {}, {} samples)",
-        past,
-        train.data.len()
-    ));
-    let run = pipeline::identify(&train, val.as_ref(), &settings);
+    // a large training file with options that need only the statistics is streamed in
+    // chunks (constant memory); anything else, and any trouble, reads it whole
+    let streamed = if crate::stream::should_stream(train_path, &settings) {
+        spin.set_message(format!(
+            "fitting LPV-PBSID_opt (p = {past}) streaming {}",
+            train_path.display()
+        ));
+        crate::stream::identify_streaming(train_path, val.as_ref(), &settings)
+    } else {
+        None
+    };
+    let run = match streamed {
+        Some(run) => Ok(run),
+        None => {
+            spin.set_message(format!("reading {}", train_path.display()));
+            let train = DataFile::read(train_path)?;
+            spin.set_message(format!(
+                "fitting LPV-PBSID_opt (p = {}, {} samples)",
+                past,
+                train.data.len()
+            ));
+            pipeline::identify(&train, val.as_ref(), &settings)
+        }
+    };
     spin.finish_and_clear();
     let run = run?;
     let mut outputs = Outputs::default();
