@@ -11,6 +11,7 @@
 use nalgebra::{DMatrix, DVector};
 
 use crate::lpvss::{scheduled, LpvSs, Signals};
+use crate::model::Feedback;
 
 /// Outcome of a refinement.
 #[derive(Debug, Clone)]
@@ -70,10 +71,24 @@ fn unpack(template: &LpvSs, v: &[f64], feedthrough: bool) -> (LpvSs, DVector<f64
     (m, x0)
 }
 
-/// Free-run simulation error y - yhat (stacked, N*l) from initial state x0; None if the
-/// simulation diverges.
-fn residual(m: &LpvSs, x0: &DVector<f64>, sig: &Signals) -> Option<Vec<f64>> {
+/// Free-run simulation error y - yhat (stacked, N*l) from initial state x0, through the
+/// model's own-output feedback `fb` when it has one; None if the simulation diverges.
+fn residual(m: &LpvSs, x0: &DVector<f64>, sig: &Signals, fb: &Feedback) -> Option<Vec<f64>> {
     let (n, l) = (m.n(), m.l());
+    if !fb.is_empty() {
+        let yh = crate::simulate::free_run_ss(m, sig, fb, x0, sig.len());
+        let mut out = Vec::with_capacity(sig.len() * l);
+        for k in 0..sig.len() {
+            for j in 0..l {
+                let e = sig.y[(k, j)] - yh[(k, j)];
+                if !e.is_finite() || yh[(k, j)].abs() > 1e12 {
+                    return None;
+                }
+                out.push(e);
+            }
+        }
+        return Some(out);
+    }
     let mut x = x0.clone();
     let mut out = Vec::with_capacity(sig.len() * l);
     for k in 0..sig.len() {
@@ -105,12 +120,57 @@ pub fn refine_output_error(
     feedthrough: bool,
     max_iter: usize,
 ) -> Refined {
+    refine_through_feedback(model, sig, &Feedback::default(), feedthrough, max_iter)
+}
+
+/// [`refine_output_error`] for a model whose signals read its own output: the free run goes
+/// through the feedback `fb` ([`crate::model::SignalMap::feedback`] on the data of `sig`),
+/// so the fit is of the closed nonlinear loop (a Lur'e structure y^3 or sin y fed back, a
+/// scheduling on y^2) rather than of the equation error PBSID minimised with measured y.
+pub fn refine_through_feedback(
+    model: &LpvSs,
+    sig: &Signals,
+    fb: &Feedback,
+    feedthrough: bool,
+    max_iter: usize,
+) -> Refined {
     let n = model.n();
     let x0 = DVector::zeros(n);
     let mut theta = pack(model, &x0, feedthrough);
+    // signals that read the output at the same sample must stay out of the output equation
+    // (SignalMap::check_loops): their D columns and C^(i), D^(i) are held at zero
+    let now = |l: &crate::model::Loop| l.own.iter().any(|o| o.factor.delay == 0);
+    let zero_d: Vec<usize> = fb
+        .inputs
+        .iter()
+        .filter(|(_, l)| now(l))
+        .map(|(i, _)| *i)
+        .collect();
+    let zero_q: Vec<usize> = fb
+        .scheduling
+        .iter()
+        .filter(|(_, l)| now(l))
+        .map(|(q, _)| q + 1)
+        .collect();
+    let unpack = |th: &[f64]| {
+        let (mut m, x0) = unpack(model, th, feedthrough);
+        for d in m.d.iter_mut() {
+            for &i in &zero_d {
+                d.column_mut(i).fill(0.0);
+            }
+        }
+        for &q in &zero_q {
+            for mats in [&mut m.c, &mut m.d] {
+                if mats.len() > 1 {
+                    mats[q].fill(0.0);
+                }
+            }
+        }
+        (m, x0)
+    };
     let cost = |th: &[f64]| -> Option<(f64, Vec<f64>)> {
-        let (m, x0) = unpack(model, th, feedthrough);
-        let r = residual(&m, &x0, sig)?;
+        let (m, x0) = unpack(th);
+        let r = residual(&m, &x0, sig, fb)?;
         Some((r.iter().map(|v| v * v).sum(), r))
     };
     let Some((mut c, mut r)) = cost(&theta) else {
@@ -178,7 +238,7 @@ pub fn refine_output_error(
             break;
         }
     }
-    let (m, x0) = unpack(model, &theta, feedthrough);
+    let (m, x0) = unpack(&theta);
     Refined {
         model: m,
         x0,

@@ -166,7 +166,9 @@ impl Eval {
     /// Evaluate `model` on `ds`.
     pub fn new(model: &ModelFile, ds: &Dataset) -> Result<Eval, DataError> {
         let sig = model.signals.evaluate(ds)?;
-        let yhat_free = simulate_signals(&model.kind, &sig, Mode::FreeRun);
+        // c14a hook: the free run goes through the model's own-output feedback, if any
+        let fb = model.signals.feedback(ds)?;
+        let yhat_free = crate::simulate::simulate_feedback(&model.kind, &sig, &fb, Mode::FreeRun);
         let yhat_pred = simulate_signals(&model.kind, &sig, Mode::Predictor);
         let var_y = (0..sig.y.ncols())
             .map(|j| {
@@ -325,7 +327,7 @@ fn score_inner(
 
 fn plain(prod: &[Factor]) -> Option<&Factor> {
     match prod {
-        [f] if f.pow == 1 && f.func.is_none() => Some(f),
+        [f] if f.pow == 1.0 && f.func.is_none() => Some(f),
         _ => None,
     }
 }
@@ -333,7 +335,7 @@ fn plain(prod: &[Factor]) -> Option<&Factor> {
 fn fac(col: &str, pow: i32, delay: usize, func: Option<FactorFn>) -> Factor {
     Factor {
         col: col.to_owned(),
-        pow,
+        pow: f64::from(pow),
         delay,
         func,
         omega: None,

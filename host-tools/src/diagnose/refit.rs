@@ -161,7 +161,7 @@ impl Spec {
                             .signals
                             .scheduling
                             .iter()
-                            .filter(|p| p.len() == 1 && p[0].pow == 1 && p[0].func.is_none())
+                            .filter(|p| p.len() == 1 && p[0].pow == 1.0 && p[0].func.is_none())
                             .cloned()
                             .collect();
                         notes.push(format!(
