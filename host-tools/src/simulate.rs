@@ -17,7 +17,7 @@
 use nalgebra::{DMatrix, DVector};
 
 use crate::data::{DataError, Dataset};
-use crate::lpvss::{scheduled, LpvSs, Signals};
+use crate::lpvss::{LpvSs, Signals};
 use crate::metrics::{bfr_per_output, mean, vaf_per_output};
 use crate::model::{ArxModel, Feedback, ModelFile, ModelKind};
 
@@ -189,6 +189,25 @@ pub fn simulate_feedback(
     }
 }
 
+/// The free run through `fb` over the whole record from an initial state estimated on its
+/// first `samples` samples ([`estimate_x0`]; lpv-arx: the measured outputs stand for the
+/// model's own over them). Every row is returned (the first ones fitted, not predicted), so
+/// a comparison of models on the same rows stays aligned.
+pub fn free_run_estimated(
+    kind: &ModelKind,
+    sig: &Signals,
+    fb: &Feedback,
+    samples: usize,
+) -> DMatrix<f64> {
+    match kind {
+        ModelKind::Ss(m) => {
+            let x0 = estimate_x0(m, sig, fb, samples);
+            run_ss(m, sig, fb, Mode::FreeRun, &x0)
+        }
+        ModelKind::Arx(m) => arx_run_from(m, sig, fb, Mode::FreeRun, samples.min(sig.len())),
+    }
+}
+
 /// The free run (through `fb`) or the one-step predictor of an lpv-ss model from `x0`.
 pub fn run_ss(
     m: &LpvSs,
@@ -204,7 +223,8 @@ pub fn run_ss(
 }
 
 /// Free run through the feedback over the first `upto` samples (the rest of the output is
-/// zero; NaN from a divergence on).
+/// zero; NaN from a divergence on: a state not finite or beyond 1e150). Allocation-free in
+/// the sample loop: the output-error refinement runs it once per parameter per iteration.
 pub fn free_run_ss(
     m: &LpvSs,
     sig: &Signals,
@@ -213,32 +233,74 @@ pub fn free_run_ss(
     upto: usize,
 ) -> DMatrix<f64> {
     let big_n = sig.len();
-    let l = m.l();
+    let (n, r, l, mm) = (m.n(), m.r(), m.l(), m.m());
+    let s = sig.p.ncols();
     let mut u = sig.u.clone();
     let mut p = sig.p.clone();
     let mut out = DMatrix::<f64>::zeros(big_n, l);
-    let mut x = x0.clone();
+    let mut x: Vec<f64> = x0.iter().copied().collect();
+    let mut xn = vec![0.0; n];
+    let mut uk = vec![0.0; r];
+    let mut mu = vec![1.0; mm];
+    let (cs, ds) = (m.c.len() > 1, m.d.len() > 1);
     for k in 0..upto.min(big_n) {
         // the signals that read outputs up to k-1 (a delay-0 own value counts as 0 here: the
         // output equation does not use it, SignalMap::check_loops)
-        fb.fill(k, &out, k, &mut u, &mut p);
-        let mu = mu_of(&p, k);
-        let uk = u.row(k).transpose();
-        let yk = scheduled(&m.c, &mu) * &x + scheduled(&m.d, &mu) * &uk;
-        out.set_row(k, &yk.transpose());
+        if !fb.is_empty() {
+            fb.fill(k, &out, k, &mut u, &mut p);
+        }
+        for q in 0..s.min(mm - 1) {
+            mu[q + 1] = p[(k, q)];
+        }
+        for (j, v) in uk.iter_mut().enumerate() {
+            *v = u[(k, j)];
+        }
+        let mut finite = true;
+        for j in 0..l {
+            let mut y = 0.0;
+            for (i, c) in m.c.iter().enumerate() {
+                let w = if cs { mu[i] } else { 1.0 };
+                if w != 0.0 {
+                    y += w * (0..n).map(|a| c[(j, a)] * x[a]).sum::<f64>();
+                }
+            }
+            for (i, d) in m.d.iter().enumerate() {
+                let w = if ds { mu[i] } else { 1.0 };
+                if w != 0.0 {
+                    y += w * (0..r).map(|a| d[(j, a)] * uk[a]).sum::<f64>();
+                }
+            }
+            finite &= y.is_finite();
+            out[(k, j)] = y;
+        }
         // ... then with y_k known
-        fb.fill(k, &out, k + 1, &mut u, &mut p);
-        let mu = mu_of(&p, k);
-        let uk = u.row(k).transpose();
-        let mut xn = DVector::<f64>::zeros(m.n());
-        for i in 0..m.m() {
-            if mu[i] != 0.0 {
-                xn += (&m.a[i] * &x + &m.b[i] * &uk) * mu[i];
+        if !fb.is_empty() {
+            fb.fill(k, &out, k + 1, &mut u, &mut p);
+            for q in 0..s.min(mm - 1) {
+                mu[q + 1] = p[(k, q)];
+            }
+            for (j, v) in uk.iter_mut().enumerate() {
+                *v = u[(k, j)];
             }
         }
-        x = xn;
-        if !x.iter().all(|v| v.is_finite()) || x.amax() > 1e150 || !yk.iter().all(|v| v.is_finite())
-        {
+        xn.iter_mut().for_each(|v| *v = 0.0);
+        for ((a, b), &w) in m.a.iter().zip(&m.b).zip(&mu) {
+            if w == 0.0 {
+                continue;
+            }
+            for (row, v) in xn.iter_mut().enumerate() {
+                let mut acc = 0.0;
+                for (col, xv) in x.iter().enumerate() {
+                    acc += a[(row, col)] * xv;
+                }
+                for (col, uv) in uk.iter().enumerate() {
+                    acc += b[(row, col)] * uv;
+                }
+                *v += w * acc;
+            }
+        }
+        std::mem::swap(&mut x, &mut xn);
+        if !finite || x.iter().any(|v| !v.is_finite() || v.abs() > 1e150) {
             for kk in k + 1..big_n {
                 for j in 0..l {
                     out[(kk, j)] = f64::NAN;

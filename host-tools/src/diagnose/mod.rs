@@ -12,6 +12,7 @@
 //! (SVG).
 
 pub mod effects;
+pub mod output; // c14a: the output-nonlinearity effect
 pub mod plots;
 pub mod refit;
 pub mod report;
