@@ -22,7 +22,7 @@ use crate::error::Error;
 use crate::model::{describe, Factor, FactorFn, ModelFile, ModelKind};
 
 /// Levenberg-Marquardt iterations of the refinement through the feedback.
-pub const REFINE_ITERATIONS: usize = 30;
+pub const REFINE_ITERATIONS: usize = 60;
 
 fn own(col: &str, pow: f64, func: Option<FactorFn>) -> Factor {
     Factor {
