@@ -375,7 +375,19 @@ pub fn fit_map(
         let d_cols: Vec<usize> = (0..r)
             .filter(|j| !now.contains(j) && (cst.contains(j) || opts.feedthrough))
             .collect();
-        let rf = crate::refine::refine_d_columns(&model, &sig, &fb, &d_cols, refine_iters);
+        let mut rf = crate::refine::refine_d_columns(&model, &sig, &fb, &d_cols, refine_iters);
+        // a second start: the map without its feedback signals (their B columns and A^(i),
+        // B^(i) zero), so the loop starts open and stable when PBSID's start with the
+        // measured output diverges in free run; the lower training error wins
+        if let Some(start) = open_loop_start(map, ds, opts, &model)? {
+            let alt = crate::refine::refine_d_columns(&start, &sig, &fb, &d_cols, refine_iters);
+            if alt.mse_after < rf.mse_after.min(rf.mse_before) {
+                rf = crate::refine::Refined {
+                    mse_before: rf.mse_before.min(alt.mse_before),
+                    ..alt
+                };
+            }
+        }
         if rf.mse_after < rf.mse_before {
             model = rf.model;
         }
@@ -391,6 +403,65 @@ pub fn fit_map(
         refinement,
         constant_inputs: cst,
     })
+}
+
+/// The start of [`fit_map`]'s second refinement: the map without the signals that read the
+/// model's own output, fitted the same way (no refinement) and embedded in the full map's
+/// dimensions (zero B columns for the feedback channels, zero A^(i), B^(i), C^(i), D^(i) for
+/// the feedback scheduling functions). None when the map has no feedback, nothing would be
+/// left, the output equation is scheduled, or the reduced fit fails or has another order than
+/// `like`.
+fn open_loop_start(
+    map: &SignalMap,
+    ds: &Dataset,
+    opts: &PbsidOptions,
+    like: &LpvSs,
+) -> Result<Option<LpvSs>, Error> {
+    let reads = |p: &[crate::model::Factor]| p.iter().any(|f| map.own_output(f).is_some());
+    let keep_u: Vec<usize> = (0..map.inputs.len())
+        .filter(|&i| !reads(&map.inputs[i]))
+        .collect();
+    let keep_q: Vec<usize> = (0..map.scheduling.len())
+        .filter(|&q| !reads(&map.scheduling[q]))
+        .collect();
+    let scheduled_output = like.c.len() > 1 || like.d.len() > 1;
+    if scheduled_output
+        || (keep_u.len() == map.inputs.len() && keep_q.len() == map.scheduling.len())
+    {
+        return Ok(None);
+    }
+    let reduced = SignalMap {
+        inputs: keep_u.iter().map(|&i| map.inputs[i].clone()).collect(),
+        scheduling: keep_q.iter().map(|&q| map.scheduling[q].clone()).collect(),
+        outputs: map.outputs.clone(),
+    };
+    let Ok(f) = fit_map(&reduced, ds, opts, 0) else {
+        return Ok(None);
+    };
+    let m = &f.model;
+    if m.n() != like.n() {
+        return Ok(None);
+    }
+    let (n, l, r, mm) = (like.n(), like.l(), like.r(), like.m());
+    let zeros = |rows, cols| vec![nalgebra::DMatrix::<f64>::zeros(rows, cols); mm];
+    let mut out = LpvSs {
+        a: zeros(n, n),
+        b: zeros(n, r),
+        k: zeros(n, l),
+        c: vec![m.c[0].clone()],
+        d: vec![nalgebra::DMatrix::zeros(l, r)],
+    };
+    for (qi, &q) in keep_q.iter().enumerate() {
+        out.a[q] = m.a[qi].clone();
+        out.k[q] = m.k[qi].clone();
+        for (ii, &i) in keep_u.iter().enumerate() {
+            out.b[q].set_column(i, &m.b[qi].column(ii));
+        }
+    }
+    for (ii, &i) in keep_u.iter().enumerate() {
+        out.d[0].set_column(i, &m.d[0].column(ii));
+    }
+    Ok(Some(out))
 }
 
 /// The warnings of an LPV-PBSID_opt fit: degenerate (no variance explained on its own

@@ -47,7 +47,7 @@ fn silverbox_arrow() {
     assert!(a2 < b2 / 5.0 && a2 <= 0.0025, "{b2} {a2}");
 }
 
-/// Unbalanced disk (train on rows 0-27999, test on 31500-34999): the gravity torque of the
+/// Unbalanced disk (train on rows 18000-27999, test on 31500-34999): the gravity torque of the
 /// off-centre mass is found as an output feedback and the test RMSE drops below the 0.12 rad
 /// target (linear 0.219 rad and a good neural net 0.095 rad on the benchmark's hidden test).
 #[test]

@@ -168,7 +168,7 @@ pub fn benches() -> Vec<Bench> {
         Bench {
             name: "disk",
             file: "unbalanced-disk.csv",
-            train: (0, 28000),
+            train: (18000, 28000),
             tests: vec![("unbalanced-disk.csv", 31500, 35000)],
         },
         Bench {
