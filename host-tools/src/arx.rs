@@ -471,9 +471,15 @@ pub fn basis_products(signals: &[Vec<Factor>], ng: usize) -> Result<Vec<Vec<Fact
                 continue;
             }
             for f in sig {
-                let pow = f.pow * e as i32;
+                let pow = f.pow * f64::from(e);
+                // whole powers merge (x^a x^b = x^(a+b)); a non-integer one is of |x| and does not
                 match prod.iter_mut().find(|g| {
-                    g.col == f.col && g.delay == f.delay && g.func == f.func && g.omega == f.omega
+                    g.col == f.col
+                        && g.delay == f.delay
+                        && g.func == f.func
+                        && g.omega == f.omega
+                        && g.pow.fract() == 0.0
+                        && pow.fract() == 0.0
                 }) {
                     Some(g) => g.pow += pow,
                     None => {
@@ -484,7 +490,7 @@ pub fn basis_products(signals: &[Vec<Factor>], ng: usize) -> Result<Vec<Vec<Fact
                 }
             }
         }
-        prod.retain(|f| f.pow != 0);
+        prod.retain(|f| f.pow != 0.0);
         out.push(prod);
     }
     Ok(out)
@@ -1907,7 +1913,7 @@ mod tests {
         );
         // a signal that is itself a product: powers multiply, equal factors merge
         let mut sq = Factor::col("p1");
-        sq.pow = 2;
+        sq.pow = 2.0;
         let sig = vec![vec![sq, Factor::col("u1")]];
         let b = basis_products(&sig, 2).unwrap();
         assert_eq!(describe(&b[2]), "p1^4*u1^2");

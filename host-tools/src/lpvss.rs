@@ -184,10 +184,25 @@ impl LpvSs {
         self.run(sig, None, true)
     }
 
+    /// Free run (`predictor` false) or one-step predictor from the initial state `x0`.
+    pub fn run_from(&self, sig: &Signals, x0: &DVector<f64>, predictor: bool) -> DMatrix<f64> {
+        self.run_x0(sig, None, predictor, x0.clone())
+    }
+
     fn run(&self, sig: &Signals, e: Option<&DMatrix<f64>>, predictor: bool) -> DMatrix<f64> {
+        self.run_x0(sig, e, predictor, DVector::zeros(self.n()))
+    }
+
+    fn run_x0(
+        &self,
+        sig: &Signals,
+        e: Option<&DMatrix<f64>>,
+        predictor: bool,
+        x0: DVector<f64>,
+    ) -> DMatrix<f64> {
         let n_samples = sig.len();
         let (n, l) = (self.n(), self.l());
-        let mut x = DVector::<f64>::zeros(n);
+        let mut x = x0;
         let mut out = DMatrix::<f64>::zeros(n_samples, l);
         for k in 0..n_samples {
             let mu = sig.mu(k);

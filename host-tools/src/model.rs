@@ -29,26 +29,41 @@ pub enum FactorFn {
     Cos,
 }
 
-fn one() -> i32 {
-    1
+fn one() -> f64 {
+    1.0
+}
+
+/// Write a power that is a whole number as a JSON integer (`"pow": 2`), any other as a float.
+fn ser_pow<S: serde::Serializer>(p: &f64, s: S) -> Result<S::Ok, S::Error> {
+    if p.fract() == 0.0 && p.abs() < 9.0e15 {
+        s.serialize_i64(*p as i64)
+    } else {
+        s.serialize_f64(*p)
+    }
 }
 
 /// One factor of a model signal: `fn(col(k - delay))^pow`, e.g. `{"col": "u1", "pow": 2}`.
+///
+/// When `col` is one of the model's outputs (a column an output product reads plainly,
+/// [`SignalMap::own_outputs`]) the factor reads the model's **own** output: the simulated one
+/// in free run, the measured one in one-step prediction and identification (DESIGN.md
+/// section 5; this is how a Lur'e feedback y^3 or a quasi-LPV scheduling on y^2 is written).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct Factor {
     /// Data column, or [`SAMPLE_INDEX`] (`"k"`) for the sample index.
     pub col: String,
-    /// Integer power (may be 0 or negative), default 1.
-    #[serde(default = "one")]
-    pub pow: i32,
+    /// Power, default 1: a whole number (may be 0 or negative) applies to the value, any
+    /// other to its magnitude (`"pow": 0.5` is sqrt|x|).
+    #[serde(default = "one", serialize_with = "ser_pow")]
+    pub pow: f64,
     /// Delay in samples, default 0; values before the start of the record are 0.
     #[serde(default)]
     pub delay: usize,
     /// Optional function, JSON key `"fn"`.
     #[serde(rename = "fn", default)]
     pub func: Option<FactorFn>,
-    /// Angular frequency (rad/sample) for `sin`/`cos`.
+    /// Angular frequency for `sin`/`cos` (rad per unit of the column; 1 when absent).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub omega: Option<f64>,
 }
@@ -58,22 +73,28 @@ impl Factor {
     pub fn col(name: &str) -> Factor {
         Factor {
             col: name.to_owned(),
-            pow: 1,
+            pow: 1.0,
             delay: 0,
             func: None,
             omega: None,
         }
     }
 
-    /// Check the factor on its own (a column name, `omega` exactly when `sin`/`cos`).
+    /// Is this factor the plain column (power 1, no delay, no function)?
+    pub fn is_plain(&self) -> bool {
+        self.pow == 1.0 && self.delay == 0 && self.func.is_none()
+    }
+
+    /// Check the factor on its own (a column name, a finite power, `omega` only with
+    /// `sin`/`cos` and finite).
     pub fn check(&self) -> Result<(), String> {
         if self.col.is_empty() {
             return Err("\"col\" is empty: name a data column or \"k\"".into());
         }
+        if !self.pow.is_finite() {
+            return Err(format!("\"pow\" {} is not finite", self.pow));
+        }
         match (self.func, self.omega) {
-            (Some(FactorFn::Sin | FactorFn::Cos), None) => {
-                Err("\"fn\" sin/cos needs \"omega\" (rad/sample)".into())
-            }
             (Some(FactorFn::Sin | FactorFn::Cos), Some(w)) if !w.is_finite() => {
                 Err(format!("\"omega\" {w} is not finite"))
             }
@@ -84,7 +105,37 @@ impl Factor {
         }
     }
 
-    /// The factor in words, e.g. `abs(u1(k-2))^2` or `sin(0.3*k)`.
+    /// The factor's value for a (delayed) column value `v`: the function, then the power (a
+    /// non-integer power of |fn(v)|). NaN for a negative power of 0 (the caller reports it).
+    pub fn apply(&self, v: f64) -> f64 {
+        let w = self.omega.unwrap_or(1.0);
+        let v = match self.func {
+            None => v,
+            Some(FactorFn::Abs) => v.abs(),
+            Some(FactorFn::Sign) => {
+                if v == 0.0 {
+                    0.0
+                } else {
+                    v.signum()
+                }
+            }
+            Some(FactorFn::Sin) => (w * v).sin(),
+            Some(FactorFn::Cos) => (w * v).cos(),
+        };
+        if self.pow == 1.0 {
+            return v;
+        }
+        if self.pow < 0.0 && v == 0.0 {
+            return f64::NAN;
+        }
+        if self.pow.fract() == 0.0 && self.pow.abs() <= i32::MAX as f64 {
+            v.powi(self.pow as i32)
+        } else {
+            v.abs().powf(self.pow)
+        }
+    }
+
+    /// The factor in words, e.g. `abs(u1(k-2))^2`, `sin(0.3*k)` or `y1^0.5`.
     pub fn describe(&self) -> String {
         let base = if self.delay == 0 {
             self.col.clone()
@@ -93,15 +144,25 @@ impl Factor {
         } else {
             format!("{}(k-{})", self.col, self.delay)
         };
-        let w = self.omega.unwrap_or(0.0);
+        let w = self.omega.unwrap_or(1.0);
+        let trig = |name: &str| {
+            if w == 1.0 {
+                format!("{name}({base})")
+            } else {
+                format!("{name}({w}*{base})")
+            }
+        };
         let mut s = match self.func {
-            None => base,
+            None => base.clone(),
             Some(FactorFn::Abs) => format!("abs({base})"),
             Some(FactorFn::Sign) => format!("sign({base})"),
-            Some(FactorFn::Sin) => format!("sin({w}*{base})"),
-            Some(FactorFn::Cos) => format!("cos({w}*{base})"),
+            Some(FactorFn::Sin) => trig("sin"),
+            Some(FactorFn::Cos) => trig("cos"),
         };
-        if self.pow != 1 {
+        if self.pow != 1.0 {
+            if self.pow.fract() != 0.0 && self.func.is_none() {
+                s = format!("|{base}|");
+            }
             let _ = write!(s, "^{}", self.pow);
         }
         s
@@ -144,27 +205,14 @@ pub fn eval_product(product: &[Factor], ds: &Dataset, role: &str) -> Result<Vec<
                 )
             })?)
         };
-        let w = f.omega.unwrap_or(0.0);
         for (k, o) in out.iter_mut().enumerate() {
             let v = match (k.checked_sub(f.delay), data) {
                 (None, _) => 0.0,
                 (Some(j), None) => j as f64,
                 (Some(j), Some(d)) => d[j],
             };
-            let v = match f.func {
-                None => v,
-                Some(FactorFn::Abs) => v.abs(),
-                Some(FactorFn::Sign) => {
-                    if v == 0.0 {
-                        0.0
-                    } else {
-                        v.signum()
-                    }
-                }
-                Some(FactorFn::Sin) => (w * v).sin(),
-                Some(FactorFn::Cos) => (w * v).cos(),
-            };
-            if f.pow < 0 && v == 0.0 {
+            let x = f.apply(v);
+            if x.is_nan() && f.pow < 0.0 {
                 return Err(DataError::new(
                     &ds.source,
                     Some(k + 2),
@@ -176,7 +224,7 @@ pub fn eval_product(product: &[Factor], ds: &Dataset, role: &str) -> Result<Vec<
                     ),
                 ));
             }
-            *o *= v.powi(f.pow);
+            *o *= x;
         }
     }
     if let Some(k) = out.iter().position(|v| !v.is_finite()) {
@@ -314,6 +362,238 @@ impl SignalMap {
             y: build(&self.outputs, "output", 0)?,
             p: build(&self.scheduling, "scheduling basis function", 1)?,
         })
+    }
+
+    /// Per output, the data column it reads plainly (`[{"col": "y1"}]`), if it does: a factor
+    /// on that column elsewhere in the map reads the model's **own** output.
+    pub fn own_outputs(&self) -> Vec<Option<&str>> {
+        self.outputs
+            .iter()
+            .map(|p| match p.as_slice() {
+                [f] if f.is_plain() && f.col != SAMPLE_INDEX => Some(f.col.as_str()),
+                _ => None,
+            })
+            .collect()
+    }
+
+    /// The output a factor reads when its column is one of the model's own outputs.
+    pub fn own_output(&self, f: &Factor) -> Option<usize> {
+        self.own_outputs()
+            .iter()
+            .position(|c| *c == Some(f.col.as_str()))
+    }
+
+    /// Does any input channel or scheduling function read the model's own output?
+    pub fn has_feedback(&self) -> bool {
+        self.inputs
+            .iter()
+            .chain(self.scheduling.iter())
+            .flatten()
+            .any(|f| self.own_output(f).is_some())
+    }
+
+    /// The own-output dependence of the map on `ds` ([`Feedback`]; empty when there is none):
+    /// what a free run must recompute from the simulated outputs at each sample.
+    pub fn feedback(&self, ds: &Dataset) -> Result<Feedback, DataError> {
+        let mut fb = Feedback::default();
+        if !self.has_feedback() {
+            return Ok(fb);
+        }
+        let build = |prod: &[Factor], role: &str| -> Result<Option<Loop>, DataError> {
+            let (own, data): (Vec<&Factor>, Vec<&Factor>) =
+                prod.iter().partition(|f| self.own_output(f).is_some());
+            if own.is_empty() {
+                return Ok(None);
+            }
+            let data: Vec<Factor> = data.into_iter().cloned().collect();
+            Ok(Some(Loop {
+                data: eval_product(&data, ds, role)?,
+                own: own
+                    .into_iter()
+                    .map(|f| OwnFactor {
+                        output: self.own_output(f).unwrap_or(0),
+                        factor: f.clone(),
+                    })
+                    .collect(),
+            }))
+        };
+        for (i, prod) in self.inputs.iter().enumerate() {
+            if let Some(l) = build(prod, &format!("input {}", i + 1))? {
+                fb.inputs.push((i, l));
+            }
+        }
+        for (q, prod) in self.scheduling.iter().enumerate().skip(1) {
+            if let Some(l) = build(prod, &format!("scheduling basis function {}", q + 1))? {
+                fb.scheduling.push((q - 1, l));
+            }
+        }
+        Ok(fb)
+    }
+
+    /// Refuse a model whose output equation would need the output it is computing: a
+    /// delay-0 own-output factor in an input channel with a non-zero D column (lpv-arx: b_0),
+    /// or in a scheduling function that C^(i) or D^(i) use (lpv-arx: any, since a_i(p(k))
+    /// multiplies the past outputs at sample k).
+    pub fn check_loops(&self, kind: &ModelKind) -> Result<(), AlgebraicLoop> {
+        let own_now = |prod: &[Factor]| {
+            prod.iter()
+                .position(|f| f.delay == 0 && self.own_output(f).is_some())
+        };
+        for (i, prod) in self.inputs.iter().enumerate() {
+            let Some(j) = own_now(prod) else { continue };
+            let used = match kind {
+                ModelKind::Ss(ss) => ss.d.iter().any(|d| d.column(i).amax() != 0.0),
+                ModelKind::Arx(a) => a.b[i].first().is_some_and(|b| b.iter().any(|v| *v != 0.0)),
+            };
+            if used {
+                return Err(AlgebraicLoop::Input {
+                    input: i,
+                    factor: j,
+                    col: prod[j].col.clone(),
+                    arx: matches!(kind, ModelKind::Arx(_)),
+                });
+            }
+        }
+        for (q, prod) in self.scheduling.iter().enumerate().skip(1) {
+            let Some(j) = own_now(prod) else { continue };
+            let used = match kind {
+                ModelKind::Ss(ss) => {
+                    let nz = |ms: &[DMatrix<f64>]| ms.len() > 1 && ms[q].amax() != 0.0;
+                    nz(&ss.c) || nz(&ss.d)
+                }
+                ModelKind::Arx(_) => true,
+            };
+            if used {
+                return Err(AlgebraicLoop::Scheduling {
+                    function: q,
+                    factor: j,
+                    col: prod[j].col.clone(),
+                    arx: matches!(kind, ModelKind::Arx(_)),
+                });
+            }
+        }
+        Ok(())
+    }
+}
+
+/// A model whose output at sample k would need itself (an algebraic loop through a delay-0
+/// own-output factor); [`SignalMap::check_loops`]. Indices are 0-based.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum AlgebraicLoop {
+    /// An input channel reads the output at the same sample and enters the output equation.
+    #[error("{} at the same sample (delay 0), but {}: the output equation would need the output it is computing; give the factor a delay >= 1{}", input_what(*input, col), if *arx { "the lag-0 coefficient b_0 of this input is non-zero".to_string() } else { format!("column {} of D is non-zero", input + 1) }, if *arx { " or set b_0 to zero" } else { " or make that D column zero" })]
+    Input {
+        /// Input channel.
+        input: usize,
+        /// Factor within the channel's product.
+        factor: usize,
+        /// The output column it reads.
+        col: String,
+        /// The model is lpv-arx.
+        arx: bool,
+    },
+    /// A scheduling function reads the output at the same sample and the output equation
+    /// depends on it.
+    #[error("scheduling basis function {} reads the model's output {col} at the same sample (delay 0), but {}: the output equation would need the output it is computing; give the factor a delay >= 1", function + 1, if *arx { "an lpv-arx model's coefficients a_i(p(k)) at sample k multiply its past outputs".to_string() } else { format!("C^({0}) or D^({0}) is non-zero", function + 1) })]
+    Scheduling {
+        /// Scheduling basis function (0 is the constant).
+        function: usize,
+        /// Factor within the function's product.
+        factor: usize,
+        /// The output column it reads.
+        col: String,
+        /// The model is lpv-arx.
+        arx: bool,
+    },
+}
+
+fn input_what(input: usize, col: &str) -> String {
+    format!("input {} reads the model's output {col}", input + 1)
+}
+
+impl AlgebraicLoop {
+    fn path(&self) -> Vec<Seg> {
+        match self {
+            AlgebraicLoop::Input { input, factor, .. } => {
+                vec![key("inputs"), Seg::Index(*input), Seg::Index(*factor)]
+            }
+            AlgebraicLoop::Scheduling {
+                function, factor, ..
+            } => vec![
+                key("scheduling"),
+                Seg::Index(*function),
+                Seg::Index(*factor),
+            ],
+        }
+    }
+}
+
+/// A factor that reads the model's own output `output` (0-based).
+#[derive(Debug, Clone, PartialEq)]
+pub struct OwnFactor {
+    /// Which model output.
+    pub output: usize,
+    /// The factor (its delay, function and power).
+    pub factor: Factor,
+}
+
+/// A model signal that reads the model's own output: the product of its data factors per
+/// sample, times its own-output factors evaluated on the outputs of the run.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Loop {
+    /// Product of the factors that read data (1 without any), per sample.
+    pub data: Vec<f64>,
+    /// The factors that read the model's own outputs.
+    pub own: Vec<OwnFactor>,
+}
+
+impl Loop {
+    /// The signal at sample k from the outputs `y` of the run (rows `< avail` known; an
+    /// unknown or pre-record value counts as 0).
+    pub fn value(&self, k: usize, y: &DMatrix<f64>, avail: usize) -> f64 {
+        let mut v = self.data[k];
+        for o in &self.own {
+            let x = match k.checked_sub(o.factor.delay) {
+                Some(j) if j < avail => y[(j, o.output)],
+                _ => 0.0,
+            };
+            v *= o.factor.apply(x);
+        }
+        v
+    }
+}
+
+/// The own-output dependence of a model's signals on a data set ([`SignalMap::feedback`]).
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct Feedback {
+    /// (input channel, its loop).
+    pub inputs: Vec<(usize, Loop)>,
+    /// (column of p, i.e. scheduling basis function - 1, its loop).
+    pub scheduling: Vec<(usize, Loop)>,
+}
+
+impl Feedback {
+    /// No signal reads the model's own output.
+    pub fn is_empty(&self) -> bool {
+        self.inputs.is_empty() && self.scheduling.is_empty()
+    }
+
+    /// Overwrite sample k of the inputs `u` (N x r) and scheduling `p` (N x s) with the loops'
+    /// values from the run's outputs `y` (rows `< avail` known).
+    pub fn fill(
+        &self,
+        k: usize,
+        y: &DMatrix<f64>,
+        avail: usize,
+        u: &mut DMatrix<f64>,
+        p: &mut DMatrix<f64>,
+    ) {
+        for (i, l) in &self.inputs {
+            u[(k, *i)] = l.value(k, y, avail);
+        }
+        for (q, l) in &self.scheduling {
+            p[(k, *q)] = l.value(k, y, avail);
+        }
     }
 }
 
@@ -963,6 +1243,9 @@ fn parse_model(v: &Value) -> Result<ModelFile, Loc> {
         (ModelKind::Arx(ArxModel { na, nb, a, b }), signals)
     };
     signals.check_located()?;
+    signals
+        .check_loops(&kind)
+        .map_err(|e| Loc::new(e.path(), e.to_string()))?;
     Ok(ModelFile { kind, signals, fit })
 }
 
@@ -1439,7 +1722,7 @@ mod tests {
         let x = f(json!({"col": "u1"}));
         assert_eq!(x, Factor::col("u1"));
         let x = f(json!({"col": "u1", "pow": -2, "delay": 3, "fn": "abs"}));
-        assert_eq!((x.pow, x.delay, x.func), (-2, 3, Some(FactorFn::Abs)));
+        assert_eq!((x.pow, x.delay, x.func), (-2.0, 3, Some(FactorFn::Abs)));
         assert_eq!(
             serde_json::to_value(Factor::col("y1")).unwrap(),
             json!({"col": "y1", "pow": 1, "delay": 0, "fn": null})
@@ -1530,12 +1813,18 @@ mod tests {
         let e = ev(json!([{"col": "q_ref"}])).unwrap_err();
         assert_eq!((e.line, e.column.as_deref()), (Some(1), Some("q_ref")));
         assert!(e.message.contains("input 1 (q_ref)"), "{e}");
-        let e = ev(json!([{"col": "k", "fn": "sin"}])).unwrap_err();
-        assert!(e.message.contains("omega"), "{e}");
+        // sin/cos of any column, omega 1 when absent
+        let s = ev(json!([{"col": "u1", "fn": "sin"}])).unwrap();
+        assert_eq!(s, [1f64.sin(), 2f64.sin()]);
+        // a non-integer power is of the magnitude
+        let r = ev(json!([{"col": "y1", "pow": 0.5}])).unwrap();
+        assert_eq!(r, [2f64.sqrt(), 0.0]);
+        let e = ev(json!([{"col": "y1", "pow": -0.5}])).unwrap_err();
+        assert!(e.message.contains("power -0.5 is undefined"), "{e}");
         let big = ds("u1,y1\n1e200,1\n");
         let e = eval_product(
             &[Factor {
-                pow: 2,
+                pow: 2.0,
                 ..Factor::col("u1")
             }],
             &big,
@@ -1794,9 +2083,9 @@ mod tests {
             "column 15: inputs[0][0]: not a factor",
         );
         err(
-            &with_sig("\"inputs\": [[{\"col\": \"k\", \"fn\": \"sin\"}]]"),
+            &with_sig("\"inputs\": [[{\"col\": \"u1\", \"fn\": \"abs\", \"omega\": 2}]]"),
             3,
-            "inputs[0][0]: \"fn\" sin/cos needs \"omega\"",
+            "inputs[0][0]: \"omega\" is only used with \"fn\": \"sin\" or \"cos\"",
         );
         err(
             &with_sig("\"inputs\": [[{\"col\": \"u1\", \"fn\": \"tan\"}]]"),
@@ -1902,5 +2191,128 @@ mod tests {
         assert_eq!(locate(t, &[key("A"), Seg::Index(1), Seg::Index(1)]), (2, 7));
         assert_eq!(locate(t, &[key("A"), Seg::Index(5)]), (1, 17));
         assert_eq!(locate(t, &[key("nope")]), (1, 1));
+    }
+
+    /// A model with a Lur'e feedback channel y1^3 (input 2) and a scheduling function |y1|^0.5.
+    fn feedback_text(d_fb: f64, delay: usize, c_sched: bool) -> String {
+        let c = if c_sched {
+            "[[[1.0]], [[0.3]]]"
+        } else {
+            "[[1.0]]"
+        };
+        format!(
+            r#"{{
+  "type": "lpv-ss",
+  "inputs": [[{{"col": "u1"}}], [{{"col": "y1", "pow": 3, "delay": {delay}}}]],
+  "scheduling": [[], [{{"col": "y1", "pow": 0.5, "delay": {delay}}}]],
+  "outputs": [[{{"col": "y1"}}]],
+  "A": [[[0.5]], [[0.1]]],
+  "B": [[[1.0, -0.2]], [[0.0, 0.0]]],
+  "K": [[[0.2]], [[0.0]]],
+  "C": {c},
+  "D": [[0.0, {d_fb}]]
+}}"#
+        )
+    }
+
+    #[test]
+    fn own_output_factors_are_found_and_round_trip() {
+        let m = ModelFile::from_json_str("m.json", &feedback_text(0.0, 0, false)).unwrap();
+        assert_eq!(m.signals.own_outputs(), vec![Some("y1")]);
+        assert!(m.signals.has_feedback());
+        assert!(!SignalMap::standard(1, 1, 1).has_feedback());
+        assert_eq!(describe(&m.signals.scheduling[1]), "|y1|^0.5");
+        let text = m.to_json_string();
+        assert!(
+            text.contains("{\"col\": \"y1\", \"pow\": 3, \"delay\": 0"),
+            "{text}"
+        );
+        assert!(text.contains("\"pow\": 0.5"), "{text}");
+        assert_eq!(ModelFile::from_json_str("x", &text).unwrap(), m);
+        // the loops on a data set: data part 1, the own factor reads output 0
+        let d = ds("u1,y1\n1,2\n3,-4\n");
+        let fb = m.signals.feedback(&d).unwrap();
+        assert_eq!(fb.inputs.len(), 1);
+        assert_eq!(fb.inputs[0].0, 1);
+        assert_eq!(fb.inputs[0].1.data, [1.0, 1.0]);
+        assert_eq!(fb.inputs[0].1.own[0].output, 0);
+        assert_eq!(fb.scheduling[0].0, 0);
+        // evaluated on a run's outputs: y^3 of row k when known, 0 otherwise
+        let y = DMatrix::from_row_slice(2, 1, &[2.0, -4.0]);
+        assert_eq!(fb.inputs[0].1.value(1, &y, 2), -64.0);
+        assert_eq!(fb.inputs[0].1.value(1, &y, 1), 0.0);
+        assert_eq!(fb.scheduling[0].1.value(1, &y, 2), 2.0);
+        // identification and the predictor read the measured output
+        let s = m.signals.evaluate(&d).unwrap();
+        assert_eq!(
+            s.u.column(1).iter().copied().collect::<Vec<_>>(),
+            [8.0, -64.0]
+        );
+    }
+
+    #[test]
+    fn a_model_that_needs_the_output_it_computes_is_refused() {
+        // D column of the feedback channel non-zero at delay 0
+        let e = err(
+            &feedback_text(0.5, 0, false),
+            3,
+            "inputs[1][0]: input 2 reads the model's output y1 at the same sample (delay 0), but column 2 of D is non-zero",
+        );
+        assert!(e.message.contains("give the factor a delay >= 1"), "{e}");
+        // a delay of 1 breaks the loop
+        assert!(ModelFile::from_json_str("m.json", &feedback_text(0.5, 1, true)).is_ok());
+        // C scheduled on y1 at delay 0
+        err(
+            &feedback_text(0.0, 0, true),
+            4,
+            "scheduling[1][0]: scheduling basis function 2 reads the model's output y1 at the same sample (delay 0), but C^(2) or D^(2) is non-zero",
+        );
+        // lpv-arx: b_0 of a delay-0 feedback input, any delay-0 scheduling on y
+        let arx = |b0: f64, sched: &str| {
+            format!(
+                r#"{{
+  "type": "lpv-arx",
+  "inputs": [[{{"col": "u1"}}], [{{"col": "y1", "fn": "sin"}}]],
+  "scheduling": [[]{sched}],
+  "na": 1,
+  "nb": 1,
+  "a": [[0.5{extra}]],
+  "b": [[[1.0{extra}], [0.5{extra}]], [[{b0}{extra}], [0.1{extra}]]]
+}}"#,
+                extra = if sched.is_empty() { "" } else { ", 0.0" }
+            )
+        };
+        assert!(ModelFile::from_json_str("m.json", &arx(0.0, "")).is_ok());
+        err(
+            &arx(0.2, ""),
+            3,
+            "the lag-0 coefficient b_0 of this input is non-zero",
+        );
+        err(
+            &arx(0.0, ", [{\"col\": \"y1\", \"pow\": 2}]"),
+            4,
+            "an lpv-arx model's coefficients a_i(p(k)) at sample k multiply its past outputs",
+        );
+        let typed = SignalMap {
+            inputs: vec![vec![Factor::col("u1")], vec![Factor::col("y1")]],
+            scheduling: vec![vec![]],
+            outputs: vec![vec![Factor::col("y1")]],
+        };
+        let ss = LpvSs {
+            a: vec![DMatrix::from_element(1, 1, 0.5)],
+            b: vec![DMatrix::from_element(1, 2, 1.0)],
+            k: vec![DMatrix::zeros(1, 1)],
+            c: vec![DMatrix::from_element(1, 1, 1.0)],
+            d: vec![DMatrix::from_row_slice(1, 2, &[0.0, 1.0])],
+        };
+        assert_eq!(
+            typed.check_loops(&ModelKind::Ss(ss)),
+            Err(AlgebraicLoop::Input {
+                input: 1,
+                factor: 0,
+                col: "y1".into(),
+                arx: false
+            })
+        );
     }
 }

@@ -23,10 +23,11 @@ use serde_json::{json, Value};
 use crate::arx::{self, ArxDims, ArxFit, ArxOptions, Estimator, LambdaChoice, SigmaChoice};
 use crate::data::Dataset;
 use crate::error::Error;
+use crate::lpvss::{LpvSs, Signals};
 use crate::model::{describe, ModelFile, ModelKind, SignalMap};
 use crate::observer::{self, ObserverRequest, ObserverStep};
 use crate::pbsid::{self, PbsidFit, PbsidOptions, Reg};
-use crate::simulate::{simulate, Mode};
+use crate::simulate::{run, simulate, Mode, X0, X0_SAMPLES};
 
 pub use crate::record::{
     fingerprint, order_rule, pbsid_fit_record, reg_name, solver_name, training_signals, DataFile,
@@ -92,6 +93,10 @@ pub fn identify(
         file: ds.source.clone(),
         source: e,
     })?;
+    // --order auto: never an order whose held-out free run is far worse than order + 1 or + 2
+    let (fit, checked_opts, order_check) =
+        check_order(ds, val, opts, fit, &map, &sig, val_sig.as_ref())?;
+    let opts = &checked_opts;
     let names: Vec<String> = map.scheduling.iter().skip(1).map(|p| describe(p)).collect();
     let obs_step = observer::observer_step(
         &fit.model,
@@ -105,6 +110,9 @@ pub fn identify(
     )
     .map_err(Error::observer)?;
     let mut record = pbsid_fit_record(opts, &fit, train.record());
+    if let (Some(c), Value::Object(m)) = (order_check, &mut record) {
+        m.insert("order_check".into(), c);
+    }
     obs_step.annotate(&mut record);
     let model = ModelFile {
         kind: ModelKind::Ss(obs_step.model.clone()),
@@ -127,6 +135,333 @@ pub fn identify(
         val_score,
         observer: obs_step,
     })
+}
+
+/// Normalised free-run error (mean over outputs of MSE / var y) of `model` on `ds` from an
+/// initial state estimated on the first samples (a quarter of the record at most, 50 at
+/// most), scored on the rest; infinite when the run diverges.
+pub fn held_out_error(model: &ModelFile, ds: &Dataset) -> Result<f64, Error> {
+    let samples = (ds.len() / 4).min(X0_SAMPLES);
+    let r = run(model, ds, Mode::FreeRun, X0::Estimate { samples })?;
+    let (n, l) = (r.y.nrows(), r.y.ncols());
+    if n <= r.skip + 1 {
+        return Ok(f64::INFINITY);
+    }
+    let mut total = 0.0;
+    for j in 0..l {
+        let y: Vec<f64> = (r.skip..n).map(|k| r.y[(k, j)]).collect();
+        let m = y.iter().sum::<f64>() / y.len() as f64;
+        let var = y.iter().map(|v| (v - m) * (v - m)).sum::<f64>() / y.len() as f64;
+        let mse = (r.skip..n)
+            .map(|k| (r.y[(k, j)] - r.yhat[(k, j)]).powi(2))
+            .sum::<f64>()
+            / y.len() as f64;
+        total += mse / var.max(1e-300);
+    }
+    let e = total / l as f64;
+    Ok(if e.is_finite() { e } else { f64::INFINITY })
+}
+
+/// The free-run check of `--order auto` ([`pbsid::free_run_order`]): the orders n, n + 1,
+/// n + 2 from the singular-value gap are refit (on the first four fifths of the training
+/// file, or on all of it when a validation file is given) and scored in free run on held-out
+/// data (the last fifth, or the validation file) from an estimated initial state; the gap's
+/// order stays unless it is far worse than a larger one. A changed order is refit on the
+/// whole training file with that order fixed (so its record's order rule is the number, and
+/// diagnose's refits reproduce it). Returns the fit, the options it used and the check's
+/// record (None when the order was given or there is too little data to hold out).
+#[allow(clippy::too_many_arguments)]
+fn check_order(
+    ds: &Dataset,
+    val: Option<&Dataset>,
+    opts: &PbsidOptions,
+    fit: PbsidFit,
+    map: &SignalMap,
+    sig: &Signals,
+    val_sig: Option<&Signals>,
+) -> Result<(PbsidFit, PbsidOptions, Option<Value>), Error> {
+    if opts.order != pbsid::Order::Auto || matches!(opts.reg, Reg::BpdnAic | Reg::BpdnSv) {
+        return Ok((fit, opts.clone(), None));
+    }
+    let n_rows = ds.len();
+    let (fit_sig, hold, held) = match val {
+        Some(v) => (sig.clone(), v.clone(), "the validation file"),
+        None => {
+            let cut = n_rows - n_rows / 5;
+            if n_rows / 5 < 100 || cut < 10 * (opts.past + 3) {
+                return Ok((fit, opts.clone(), None));
+            }
+            let tail = Dataset {
+                source: format!("{} (last fifth)", ds.source),
+                names: ds.names.clone(),
+                cols: ds.cols.iter().map(|c| c[cut..].to_vec()).collect(),
+            };
+            (
+                sig.slice(0, cut),
+                tail,
+                "the last fifth of the training file",
+            )
+        }
+    };
+    let n0 = fit.order;
+    let max = opts.max_order.min(fit.singular_values.len());
+    let err = |o: usize| -> Option<f64> {
+        let mut op = opts.clone();
+        op.order = pbsid::Order::Fixed(o);
+        op.refine = false;
+        let f = pbsid::fit(&fit_sig, &op).ok()?;
+        let mf = ModelFile {
+            kind: ModelKind::Ss(f.model),
+            signals: map.clone(),
+            fit: Value::Null,
+        };
+        held_out_error(&mf, &hold).ok()
+    };
+    let (n, seen) = pbsid::free_run_order(n0, max, err);
+    let vafs: Vec<Value> = seen
+        .iter()
+        .map(|(o, e)| json!({"order": o, "vaf": 100.0 * (1.0 - e).max(0.0)}))
+        .collect();
+    let record = json!({
+        "gap_order": n0,
+        "order": n,
+        "held_out": held,
+        "free_run": vafs,
+        "rule": format!("an order is replaced by order + 1 or + 2 when its held-out free-run error is more than {} times theirs and {} above (normalised MSE)", pbsid::FAR_WORSE_RATIO, pbsid::FAR_WORSE_GAP),
+    });
+    if n == n0 {
+        return Ok((fit, opts.clone(), Some(record)));
+    }
+    let mut op = opts.clone();
+    op.order = pbsid::Order::Fixed(n);
+    let mut f2 = pbsid::fit_with_validation(sig, val_sig, &op).map_err(|e| Error::Fit {
+        file: ds.source.clone(),
+        source: e,
+    })?;
+    let words: Vec<String> = seen
+        .iter()
+        .map(|(o, e)| format!("n = {o}: VAF {:.1} %", 100.0 * (1.0 - e).max(0.0)))
+        .collect();
+    f2.order_reason = format!(
+        "{}; the singular-value gap gave {n0}, whose free run on {held} is far worse ({})",
+        fit.order_reason,
+        words.join(", ")
+    );
+    Ok((f2, op, Some(record)))
+}
+
+/// A model fitted to a signal map that may read the model's own output ([`fit_map`]).
+#[derive(Debug, Clone)]
+pub struct MapFit {
+    /// The model (every channel of the map; K as PBSID identified it).
+    pub model: LpvSs,
+    /// The PBSID fit of the varying channels.
+    pub fit: PbsidFit,
+    /// Training MSE of the free run (through the feedback) before and after the output-error
+    /// refinement, and its iterations (None when the map has neither feedback nor a constant
+    /// channel and `refine_iters` is 0).
+    pub refinement: Option<(f64, f64, usize)>,
+    /// Input channels constant on the training data (offsets).
+    pub constant_inputs: Vec<usize>,
+}
+
+/// Fit a signal map on `ds` the way every front end does (LPV-PBSID_opt with `opts`, kernel
+/// paper Algorithms 1-2), for maps that read the model's own output (DESIGN.md section 5):
+/// PBSID sees the measured output in those channels (as with feedback); constant channels
+/// are left out of PBSID (which scales inputs by their spread), the varying signals centred,
+/// and the constant channels' B, D columns set from the means; then the output-error
+/// refinement runs through the feedback ([`crate::refine::refine_d_columns`], D refined in
+/// the constant channels and, with `opts.feedthrough`, the others that may have one), which
+/// is what turns the PBSID start into a fit of the nonlinear loop. A channel reading the
+/// output at the same sample keeps a zero D column.
+pub fn fit_map(
+    map: &SignalMap,
+    ds: &Dataset,
+    opts: &PbsidOptions,
+    refine_iters: usize,
+) -> Result<MapFit, Error> {
+    let sig = map.evaluate(ds)?;
+    let fb = map.feedback(ds)?;
+    let r = sig.u.ncols();
+    let constant = |j: usize| {
+        let c = sig.u.column(j);
+        c.iter()
+            .all(|v| (v - c[0]).abs() <= 1e-12 * c[0].abs().max(1e-300))
+    };
+    let (cst, var): (Vec<usize>, Vec<usize>) = (0..r).partition(|&j| constant(j));
+    let fit_err = |e| Error::Fit {
+        file: ds.source.clone(),
+        source: e,
+    };
+    if var.is_empty() {
+        return Err(Error::Data(crate::data::DataError::new(
+            &ds.source,
+            None,
+            None,
+            "the model has no input channel that varies on the training data",
+        )));
+    }
+    let mut sub = Signals {
+        u: nalgebra::DMatrix::from_fn(sig.len(), var.len(), |i, j| sig.u[(i, var[j])]),
+        y: sig.y.clone(),
+        p: sig.p.clone(),
+    };
+    let (mut u_mean, mut y_mean) = (vec![0.0; var.len()], vec![0.0; sig.y.ncols()]);
+    if !cst.is_empty() {
+        for (j, m) in u_mean.iter_mut().enumerate() {
+            *m = sub.u.column(j).mean();
+            sub.u.column_mut(j).add_scalar_mut(-*m);
+        }
+        for (j, m) in y_mean.iter_mut().enumerate() {
+            *m = sub.y.column(j).mean();
+            sub.y.column_mut(j).add_scalar_mut(-*m);
+        }
+    }
+    let fit = pbsid::fit(&sub, opts).map_err(fit_err)?;
+    let fm = &fit.model;
+    let n = fm.n();
+    let l = fm.l();
+    let widen = |mats: &[nalgebra::DMatrix<f64>], rows: usize| -> Vec<nalgebra::DMatrix<f64>> {
+        mats.iter()
+            .map(|m| {
+                let mut w = nalgebra::DMatrix::zeros(rows, r);
+                for (jj, &j) in var.iter().enumerate() {
+                    w.set_column(j, &m.column(jj));
+                }
+                w
+            })
+            .collect()
+    };
+    let mut model = LpvSs {
+        a: fm.a.clone(),
+        b: widen(&fm.b, n),
+        k: fm.k.clone(),
+        c: fm.c.clone(),
+        d: widen(&fm.d, l),
+    };
+    // centred model -> raw signals: the first constant channel carries -B u_mean and
+    // y_mean - D u_mean (divided by its constant value)
+    if let Some(&c0) = cst.first() {
+        let level = sig.u[(0, c0)];
+        let um = nalgebra::DVector::from_column_slice(&u_mean);
+        for (i, b) in model.b.iter_mut().enumerate() {
+            let bu = &fm.b[i] * &um;
+            b.set_column(c0, &(-bu / level));
+        }
+        for (i, d) in model.d.iter_mut().enumerate() {
+            let du = &fm.d[i] * &um;
+            let ym = if i == 0 {
+                nalgebra::DVector::from_column_slice(&y_mean)
+            } else {
+                nalgebra::DVector::zeros(l)
+            };
+            d.set_column(c0, &((ym - du) / level));
+        }
+    }
+    // a channel reading the output at the same sample has no feedthrough (check_loops)
+    let now: Vec<usize> = fb
+        .inputs
+        .iter()
+        .filter(|(_, lp)| lp.own.iter().any(|o| o.factor.delay == 0))
+        .map(|(i, _)| *i)
+        .collect();
+    for d in model.d.iter_mut() {
+        for &i in &now {
+            d.column_mut(i).fill(0.0);
+        }
+    }
+    let mut refinement = None;
+    if refine_iters > 0 && (!fb.is_empty() || !cst.is_empty()) {
+        let d_cols: Vec<usize> = (0..r)
+            .filter(|j| !now.contains(j) && (cst.contains(j) || opts.feedthrough))
+            .collect();
+        let mut rf = crate::refine::refine_d_columns(&model, &sig, &fb, &d_cols, refine_iters);
+        // a second start: the map without its feedback signals (their B columns and A^(i),
+        // B^(i) zero), so the loop starts open and stable when PBSID's start with the
+        // measured output diverges in free run; the lower training error wins
+        if let Some(start) = open_loop_start(map, ds, opts, &model)? {
+            let alt = crate::refine::refine_d_columns(&start, &sig, &fb, &d_cols, refine_iters);
+            if alt.mse_after < rf.mse_after.min(rf.mse_before) {
+                rf = crate::refine::Refined {
+                    mse_before: rf.mse_before.min(alt.mse_before),
+                    ..alt
+                };
+            }
+        }
+        if rf.mse_after < rf.mse_before {
+            model = rf.model;
+        }
+        refinement = Some((
+            rf.mse_before,
+            rf.mse_after.min(rf.mse_before),
+            rf.iterations,
+        ));
+    }
+    Ok(MapFit {
+        model,
+        fit,
+        refinement,
+        constant_inputs: cst,
+    })
+}
+
+/// The start of [`fit_map`]'s second refinement: the map without the signals that read the
+/// model's own output, fitted the same way (no refinement) and embedded in the full map's
+/// dimensions (zero B columns for the feedback channels, zero A^(i), B^(i), C^(i), D^(i) for
+/// the feedback scheduling functions). None when the map has no feedback, nothing would be
+/// left, the output equation is scheduled, or the reduced fit fails or has another order than
+/// `like`.
+fn open_loop_start(
+    map: &SignalMap,
+    ds: &Dataset,
+    opts: &PbsidOptions,
+    like: &LpvSs,
+) -> Result<Option<LpvSs>, Error> {
+    let reads = |p: &[crate::model::Factor]| p.iter().any(|f| map.own_output(f).is_some());
+    let keep_u: Vec<usize> = (0..map.inputs.len())
+        .filter(|&i| !reads(&map.inputs[i]))
+        .collect();
+    let keep_q: Vec<usize> = (0..map.scheduling.len())
+        .filter(|&q| !reads(&map.scheduling[q]))
+        .collect();
+    let scheduled_output = like.c.len() > 1 || like.d.len() > 1;
+    if scheduled_output
+        || (keep_u.len() == map.inputs.len() && keep_q.len() == map.scheduling.len())
+    {
+        return Ok(None);
+    }
+    let reduced = SignalMap {
+        inputs: keep_u.iter().map(|&i| map.inputs[i].clone()).collect(),
+        scheduling: keep_q.iter().map(|&q| map.scheduling[q].clone()).collect(),
+        outputs: map.outputs.clone(),
+    };
+    let Ok(f) = fit_map(&reduced, ds, opts, 0) else {
+        return Ok(None);
+    };
+    let m = &f.model;
+    if m.n() != like.n() {
+        return Ok(None);
+    }
+    let (n, l, r, mm) = (like.n(), like.l(), like.r(), like.m());
+    let zeros = |rows, cols| vec![nalgebra::DMatrix::<f64>::zeros(rows, cols); mm];
+    let mut out = LpvSs {
+        a: zeros(n, n),
+        b: zeros(n, r),
+        k: zeros(n, l),
+        c: vec![m.c[0].clone()],
+        d: vec![nalgebra::DMatrix::zeros(l, r)],
+    };
+    for (qi, &q) in keep_q.iter().enumerate() {
+        out.a[q] = m.a[qi].clone();
+        out.k[q] = m.k[qi].clone();
+        for (ii, &i) in keep_u.iter().enumerate() {
+            out.b[q].set_column(i, &m.b[qi].column(ii));
+        }
+    }
+    for (ii, &i) in keep_u.iter().enumerate() {
+        out.d[0].set_column(i, &m.d[0].column(ii));
+    }
+    Ok(Some(out))
 }
 
 /// The warnings of an LPV-PBSID_opt fit: degenerate (no variance explained on its own

@@ -10,7 +10,8 @@
 
 use nalgebra::{DMatrix, DVector};
 
-use crate::lpvss::{scheduled, LpvSs, Signals};
+use crate::lpvss::{LpvSs, Signals};
+use crate::model::Feedback;
 
 /// Outcome of a refinement.
 #[derive(Debug, Clone)]
@@ -28,7 +29,7 @@ pub struct Refined {
     pub iterations: usize,
 }
 
-fn pack(m: &LpvSs, x0: &DVector<f64>, feedthrough: bool) -> Vec<f64> {
+fn pack(m: &LpvSs, x0: &DVector<f64>, d_cols: &[usize]) -> Vec<f64> {
     let mut v = Vec::new();
     for a in &m.a {
         v.extend(a.iter());
@@ -39,16 +40,16 @@ fn pack(m: &LpvSs, x0: &DVector<f64>, feedthrough: bool) -> Vec<f64> {
     for c in &m.c {
         v.extend(c.iter());
     }
-    if feedthrough {
-        for d in &m.d {
-            v.extend(d.iter());
+    for d in &m.d {
+        for &j in d_cols {
+            v.extend(d.column(j).iter());
         }
     }
     v.extend(x0.iter());
     v
 }
 
-fn unpack(template: &LpvSs, v: &[f64], feedthrough: bool) -> (LpvSs, DVector<f64>) {
+fn unpack(template: &LpvSs, v: &[f64], d_cols: &[usize]) -> (LpvSs, DVector<f64>) {
     let mut m = template.clone();
     let mut i = 0;
     let mut fill = |mats: &mut Vec<DMatrix<f64>>| {
@@ -62,39 +63,37 @@ fn unpack(template: &LpvSs, v: &[f64], feedthrough: bool) -> (LpvSs, DVector<f64
     fill(&mut m.a);
     fill(&mut m.b);
     fill(&mut m.c);
-    if feedthrough {
-        fill(&mut m.d);
+    for d in m.d.iter_mut() {
+        for &j in d_cols {
+            for x in d.column_mut(j).iter_mut() {
+                *x = v[i];
+                i += 1;
+            }
+        }
     }
     let n = template.n();
     let x0 = DVector::from_column_slice(&v[i..i + n]);
     (m, x0)
 }
 
-/// Free-run simulation error y - yhat (stacked, N*l) from initial state x0; None if the
-/// simulation diverges.
-fn residual(m: &LpvSs, x0: &DVector<f64>, sig: &Signals) -> Option<Vec<f64>> {
-    let (n, l) = (m.n(), m.l());
-    let mut x = x0.clone();
-    let mut out = Vec::with_capacity(sig.len() * l);
-    for k in 0..sig.len() {
-        let mu = sig.mu(k);
-        let u = sig.u.row(k).transpose();
-        let yhat = scheduled(&m.c, &mu) * &x + scheduled(&m.d, &mu) * &u;
-        for j in 0..l {
-            out.push(sig.y[(k, j)] - yhat[j]);
-        }
-        let mut xn = DVector::<f64>::zeros(n);
-        for i in 0..m.m() {
-            if mu[i] != 0.0 {
-                xn += (&m.a[i] * &x + &m.b[i] * &u) * mu[i];
+/// Free-run simulation error y - yhat (stacked, N*l) from initial state x0, through the
+/// model's own-output feedback `fb` when it has one; None if the simulation diverges.
+fn residual(m: &LpvSs, x0: &DVector<f64>, sig: &Signals, fb: &Feedback) -> Option<Vec<f64>> {
+    let l = m.l();
+    {
+        let yh = crate::simulate::free_run_ss(m, sig, fb, x0, sig.len());
+        let mut out = Vec::with_capacity(sig.len() * l);
+        for k in 0..sig.len() {
+            for j in 0..l {
+                let e = sig.y[(k, j)] - yh[(k, j)];
+                if !e.is_finite() || yh[(k, j)].abs() > 1e12 {
+                    return None;
+                }
+                out.push(e);
             }
         }
-        if !xn.iter().all(|v| v.is_finite()) || xn.amax() > 1e12 {
-            return None;
-        }
-        x = xn;
+        Some(out)
     }
-    Some(out)
 }
 
 /// Refine `model` on `sig` by Levenberg-Marquardt on the free-run error (at most `max_iter`
@@ -105,12 +104,75 @@ pub fn refine_output_error(
     feedthrough: bool,
     max_iter: usize,
 ) -> Refined {
+    refine_through_feedback(model, sig, &Feedback::default(), feedthrough, max_iter)
+}
+
+/// [`refine_output_error`] for a model whose signals read its own output: the free run goes
+/// through the feedback `fb` ([`crate::model::SignalMap::feedback`] on the data of `sig`),
+/// so the fit is of the closed nonlinear loop (a Lur'e structure y^3 or sin y fed back, a
+/// scheduling on y^2) rather than of the equation error PBSID minimised with measured y.
+pub fn refine_through_feedback(
+    model: &LpvSs,
+    sig: &Signals,
+    fb: &Feedback,
+    feedthrough: bool,
+    max_iter: usize,
+) -> Refined {
+    let cols: Vec<usize> = if feedthrough {
+        (0..model.r()).collect()
+    } else {
+        vec![]
+    };
+    refine_d_columns(model, sig, fb, &cols, max_iter)
+}
+
+/// [`refine_through_feedback`] with D refined in the input columns `d_cols` only (the other
+/// columns kept as given; e.g. an offset channel's D estimated for a model without
+/// feedthrough). Columns of channels that read the output at the same sample stay zero.
+pub fn refine_d_columns(
+    model: &LpvSs,
+    sig: &Signals,
+    fb: &Feedback,
+    d_cols: &[usize],
+    max_iter: usize,
+) -> Refined {
     let n = model.n();
     let x0 = DVector::zeros(n);
-    let mut theta = pack(model, &x0, feedthrough);
+    let mut theta = pack(model, &x0, d_cols);
+    // signals that read the output at the same sample must stay out of the output equation
+    // (SignalMap::check_loops): their D columns and C^(i), D^(i) are held at zero
+    let now = |l: &crate::model::Loop| l.own.iter().any(|o| o.factor.delay == 0);
+    let zero_d: Vec<usize> = fb
+        .inputs
+        .iter()
+        .filter(|(_, l)| now(l))
+        .map(|(i, _)| *i)
+        .collect();
+    let zero_q: Vec<usize> = fb
+        .scheduling
+        .iter()
+        .filter(|(_, l)| now(l))
+        .map(|(q, _)| q + 1)
+        .collect();
+    let unpack = |th: &[f64]| {
+        let (mut m, x0) = unpack(model, th, d_cols);
+        for d in m.d.iter_mut() {
+            for &i in &zero_d {
+                d.column_mut(i).fill(0.0);
+            }
+        }
+        for &q in &zero_q {
+            for mats in [&mut m.c, &mut m.d] {
+                if mats.len() > 1 {
+                    mats[q].fill(0.0);
+                }
+            }
+        }
+        (m, x0)
+    };
     let cost = |th: &[f64]| -> Option<(f64, Vec<f64>)> {
-        let (m, x0) = unpack(model, th, feedthrough);
-        let r = residual(&m, &x0, sig)?;
+        let (m, x0) = unpack(th);
+        let r = residual(&m, &x0, sig, fb)?;
         Some((r.iter().map(|v| v * v).sum(), r))
     };
     let Some((mut c, mut r)) = cost(&theta) else {
@@ -178,7 +240,7 @@ pub fn refine_output_error(
             break;
         }
     }
-    let (m, x0) = unpack(model, &theta, feedthrough);
+    let (m, x0) = unpack(&theta);
     Refined {
         model: m,
         x0,

@@ -57,9 +57,27 @@ pub(super) fn run(a: &StabilityArgs, out: &mut dyn Write) -> Result<(), CliError
     };
     let rep = observer::stability_report(ss, &names, &model.fit, sig.as_ref(), &a.range)
         .map_err(|e| CliError::Invalid(format!("{}: {e}", a.model.display())))?;
+    // signals on the model's own output read the measured one in the predictor
+    let own: Vec<String> = model
+        .signals
+        .scheduling
+        .iter()
+        .skip(1)
+        .filter(|p| p.iter().any(|f| model.signals.own_output(f).is_some()))
+        .map(|p| crate::model::describe(p))
+        .collect();
+    let own_note = (!own.is_empty()).then(|| {
+        format!(
+            "{} read the model's own output: the predictor reads the measured one, so the region is the predictor's; the free run closes a loop through them that a frozen-scheduling test does not cover",
+            own.join(", ")
+        )
+    });
     if a.json {
         let mut v = rep.to_json();
         if let Value::Object(o) = &mut v {
+            if let Some(n) = &own_note {
+                o.insert("own_output_note".into(), n.clone().into());
+            }
             o.insert("command".into(), "stability".into());
             o.insert("model".into(), a.model.display().to_string().into());
             o.insert(
@@ -96,5 +114,8 @@ pub(super) fn run(a: &StabilityArgs, out: &mut dyn Write) -> Result<(), CliError
             "UNSTABLE somewhere in the box"
         }
     )?;
+    if let Some(n) = &own_note {
+        writeln!(out, "  note: {n}")?;
+    }
     Ok(())
 }

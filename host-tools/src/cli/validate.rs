@@ -10,8 +10,16 @@ use super::diagnose::read_model;
 use super::files::{check_paths, Outputs};
 use super::{print_json, CliError};
 use crate::data::Dataset;
-use crate::pipeline::score;
-use crate::simulate::{diverged_at, simulate, Mode};
+use crate::simulate::{diverged_at, run, score_from, Mode, X0, X0_SAMPLES};
+
+/// The initial state of a run.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum X0Choice {
+    /// The zero state; every sample is scored.
+    Zero,
+    /// Estimated by least squares from the first --x0-samples samples, which are not scored.
+    Estimate,
+}
 
 /// A model run on a data file: what `validate` and `simulate` share.
 #[derive(Debug, Args)]
@@ -25,6 +33,13 @@ pub struct ModelOnData {
     /// The one-step-ahead predictor (measured past outputs) instead of the free run.
     #[arg(long)]
     pub predictor: bool,
+    /// Initial state: zero, or estimated from the first --x0-samples samples (which are then
+    /// left out of the score), as the public benchmarks allow.
+    #[arg(long, value_enum, default_value = "zero")]
+    pub x0: X0Choice,
+    /// Samples used to estimate the initial state with --x0 estimate.
+    #[arg(long, default_value_t = X0_SAMPLES as u64, value_parser = clap::value_parser!(u64).range(1..))]
+    pub x0_samples: u64,
 }
 
 impl ModelOnData {
@@ -34,6 +49,16 @@ impl ModelOnData {
             Mode::Predictor
         } else {
             Mode::FreeRun
+        }
+    }
+
+    /// The initial state, as asked.
+    fn x0(&self) -> X0 {
+        match self.x0 {
+            X0Choice::Zero => X0::Zero,
+            X0Choice::Estimate => X0::Estimate {
+                samples: usize::try_from(self.x0_samples).unwrap_or(usize::MAX),
+            },
         }
     }
 }
@@ -64,7 +89,7 @@ pub(super) fn run_validate(a: &ValidateArgs, out: &mut dyn Write) -> Result<(), 
     let model = read_model(&a.run.model)?;
     let ds = Dataset::read_csv(&a.run.data)?;
     let mode = a.run.mode();
-    let sc = score(&model, &ds, mode)?;
+    let sc = score_from(&model, &ds, mode, a.run.x0())?;
     let diverged = sc.diverged_at.map(|k| {
         format!(
             "diverged at sample {k} (line {} of {}): the {} output is not finite or beyond 1e100 \
@@ -81,9 +106,18 @@ pub(super) fn run_validate(a: &ValidateArgs, out: &mut dyn Write) -> Result<(), 
                 "diverged": diverged}),
         )?;
     } else {
+        let start = if sc.skipped > 0 {
+            format!(
+                ", initial state estimated from the first {} samples, scored on the other {}",
+                sc.skipped,
+                ds.len() - sc.skipped
+            )
+        } else {
+            String::new()
+        };
         writeln!(
             out,
-            "{} on {} ({}):",
+            "{} on {} ({}{start}):",
             a.run.model.display(),
             sc.file,
             sc.mode
@@ -115,7 +149,7 @@ pub(super) fn run_simulate(a: &SimulateArgs, out: &mut dyn Write) -> Result<(), 
     let model = read_model(&a.run.model)?;
     let mut ds = Dataset::read_csv(&a.run.data)?;
     let mode = a.run.mode();
-    let (_, yhat) = simulate(&model, &ds, mode)?;
+    let yhat = run(&model, &ds, mode, a.run.x0())?.yhat;
     if let Some(k) = diverged_at(&yhat) {
         return Err(CliError::Invalid(format!(
             "{}: the simulation diverged at sample {k} (line {} of {}): the output is not \

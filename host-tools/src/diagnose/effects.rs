@@ -77,11 +77,13 @@ pub enum Effect {
     ColouredNoise,
     /// A logged column explains the residual.
     UnusedSignal,
+    /// c14a hook: the model lacks a dependence on its own output level (diagnose/output.rs).
+    OutputNonlinearity,
 }
 
 impl Effect {
     /// Every effect, in the order of the catalogue.
-    pub const ALL: [Effect; 11] = [
+    pub const ALL: [Effect; 12] = [
         Effect::OutputOffset,
         Effect::Feedthrough,
         Effect::ScheduledOutput,
@@ -93,6 +95,7 @@ impl Effect {
         Effect::OrderTooLow,
         Effect::ColouredNoise,
         Effect::UnusedSignal,
+        Effect::OutputNonlinearity,
     ];
 
     /// The name in the report.
@@ -109,6 +112,7 @@ impl Effect {
             Effect::OrderTooLow => "order-too-low",
             Effect::ColouredNoise => "coloured-noise",
             Effect::UnusedSignal => "unused-signal",
+            Effect::OutputNonlinearity => "output-nonlinearity",
         }
     }
 
@@ -126,6 +130,9 @@ impl Effect {
             Effect::OrderTooLow => "states (its order or past window is too small)",
             Effect::ColouredNoise => "a noise model (the one-step residual is not white)",
             Effect::UnusedSignal => "a logged signal that explains the residual",
+            Effect::OutputNonlinearity => {
+                "a dependence on its own output level (Lur'e feedback f(y) or scheduling on f(y))"
+            }
         }
     }
 
@@ -166,7 +173,9 @@ impl Eval {
     /// Evaluate `model` on `ds`.
     pub fn new(model: &ModelFile, ds: &Dataset) -> Result<Eval, DataError> {
         let sig = model.signals.evaluate(ds)?;
-        let yhat_free = simulate_signals(&model.kind, &sig, Mode::FreeRun);
+        // c14a hook: the free run goes through the model's own-output feedback, if any
+        let fb = model.signals.feedback(ds)?;
+        let yhat_free = crate::simulate::simulate_feedback(&model.kind, &sig, &fb, Mode::FreeRun);
         let yhat_pred = simulate_signals(&model.kind, &sig, Mode::Predictor);
         let var_y = (0..sig.y.ncols())
             .map(|j| {
@@ -325,7 +334,7 @@ fn score_inner(
 
 fn plain(prod: &[Factor]) -> Option<&Factor> {
     match prod {
-        [f] if f.pow == 1 && f.func.is_none() => Some(f),
+        [f] if f.pow == 1.0 && f.func.is_none() => Some(f),
         _ => None,
     }
 }
@@ -333,7 +342,7 @@ fn plain(prod: &[Factor]) -> Option<&Factor> {
 fn fac(col: &str, pow: i32, delay: usize, func: Option<FactorFn>) -> Factor {
     Factor {
         col: col.to_owned(),
-        pow,
+        pow: f64::from(pow),
         delay,
         func,
         omega: None,
@@ -811,6 +820,12 @@ pub fn candidates(ctx: &Context<'_>) -> (Vec<Candidate>, Vec<(Effect, String)>) 
             "no logged column besides the model's signals".into(),
         ));
     }
+    // c14a hook: output-nonlinearity (diagnose/output.rs)
+    let (own, why) = super::output::candidates(ctx);
+    for (detail, sp) in own {
+        push(Effect::OutputNonlinearity, detail, sp);
+    }
+    na.extend(why.map(|w| (Effect::OutputNonlinearity, w)));
     na.extend(skipped);
     (out, na)
 }
@@ -1020,6 +1035,8 @@ pub fn evidence(
                 }
             }
         }
+        // c14a hook: output-nonlinearity (diagnose/output.rs)
+        Effect::OutputNonlinearity => ev.extend(super::output::evidence(best)),
     }
     ev
 }

@@ -12,6 +12,7 @@
 //! (SVG).
 
 pub mod effects;
+pub mod output; // c14a: the output-nonlinearity effect
 pub mod plots;
 pub mod refit;
 pub mod report;
@@ -22,7 +23,7 @@ use serde::Serialize;
 
 use crate::data::{DataError, Dataset};
 use crate::model::ModelFile;
-use crate::simulate::{score as score_model, simulate_signals, Mode, Score};
+use crate::simulate::{score as score_model, Mode, Score};
 
 use effects::{candidates, evidence, significant, Context, Effect, Eval, Finding, Scored};
 use refit::{fit_spec, Fitted, Spec};
@@ -359,8 +360,15 @@ pub fn diagnose_with_progress(
             }
         }
         let train_sig = base.model.signals.evaluate(train)?;
-        let train_res =
-            &train_sig.y - simulate_signals(&base.model.kind, &train_sig, Mode::FreeRun);
+        // c14a hook: through the model's own-output feedback, if any
+        let train_fb = base.model.signals.feedback(train)?;
+        let train_res = &train_sig.y
+            - crate::simulate::simulate_feedback(
+                &base.model.kind,
+                &train_sig,
+                &train_fb,
+                Mode::FreeRun,
+            );
         let ctx = Context {
             spec: &spec,
             base: &base,

@@ -161,7 +161,7 @@ impl Spec {
                             .signals
                             .scheduling
                             .iter()
-                            .filter(|p| p.len() == 1 && p[0].pow == 1 && p[0].func.is_none())
+                            .filter(|p| p.len() == 1 && p[0].pow == 1.0 && p[0].func.is_none())
                             .cloned()
                             .collect();
                         notes.push(format!(
@@ -293,6 +293,10 @@ fn select_columns(m: &DMatrix<f64>, cols: &[usize]) -> DMatrix<f64> {
 pub fn fit_spec(spec: &Spec, train: &Dataset, base_fit: &Value) -> Result<Fitted, RefitError> {
     if let Some(a) = &spec.arx {
         return fit_arx(spec, a, train, base_fit);
+    }
+    // c14a hook: a structure that reads the model's own output (diagnose/output.rs)
+    if spec.signals.has_feedback() {
+        return super::output::fit(spec, train, base_fit);
     }
     let sig = spec.signals.evaluate(train)?;
     let r = sig.u.ncols();

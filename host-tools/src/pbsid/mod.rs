@@ -45,7 +45,9 @@ use crate::lpvss::Signals;
 
 pub use dual::{detect_period, dual_gamma_kz_matrix, dual_kernel_matrix, select_kernel_rows};
 pub use error::FitError;
-pub use order::{select_order, FLOOR_FACTOR};
+pub use order::{
+    far_worse, free_run_order, select_order, FAR_WORSE_GAP, FAR_WORSE_RATIO, FLOOR_FACTOR,
+};
 pub use realize::{gamma_k, realize_from_states, realize_from_stats};
 pub use scaling::{unscale, Scaling};
 pub use settings::{

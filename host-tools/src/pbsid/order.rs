@@ -77,3 +77,97 @@ pub(crate) fn choose_order(
         Order::Auto => Ok(select_order(sv, max_n)),
     }
 }
+
+/// An order whose held-out free-run error is more than this factor above a larger order's
+/// (and [`FAR_WORSE_GAP`] above it in absolute terms) is "far worse" ([`free_run_order`]).
+pub const FAR_WORSE_RATIO: f64 = 1.25;
+
+/// ... and more than this much (normalised MSE, i.e. 5 VAF points) above it.
+pub const FAR_WORSE_GAP: f64 = 0.05;
+
+/// Is the normalised held-out error `e_n` far worse than `e_larger` (a larger order's)?
+pub fn far_worse(e_n: f64, e_larger: f64) -> bool {
+    let e_n = if e_n.is_finite() { e_n } else { f64::INFINITY };
+    e_larger.is_finite() && e_n > FAR_WORSE_RATIO * e_larger && e_n - e_larger > FAR_WORSE_GAP
+}
+
+/// The order check of `--order auto` (issue 14): starting from the singular-value choice
+/// `start`, move to the smaller of order + 1 and + 2 that is far better while the current order's held-out free-run
+/// error (normalised MSE, from `err`, which may fail: then that order is not a candidate) is
+/// far worse than one of them ([`far_worse`]); orders above `max` are not tried. Returns the
+/// order and the errors seen, ascending by order.
+pub fn free_run_order(
+    start: usize,
+    max: usize,
+    mut err: impl FnMut(usize) -> Option<f64>,
+) -> (usize, Vec<(usize, f64)>) {
+    let mut seen: Vec<(usize, f64)> = Vec::new();
+    let mut get = |o: usize, seen: &mut Vec<(usize, f64)>| -> Option<f64> {
+        if let Some(&(_, e)) = seen.iter().find(|s| s.0 == o) {
+            return Some(e);
+        }
+        let e = err(o)?;
+        seen.push((o, e));
+        Some(e)
+    };
+    let mut n = start;
+    let Some(mut e_n) = get(n, &mut seen) else {
+        return (start, seen);
+    };
+    loop {
+        // the smallest larger order that is far better (the loop then checks its own + 1, + 2)
+        let mut best: Option<(usize, f64)> = None;
+        for o in [n + 1, n + 2] {
+            if o > max || best.is_some() {
+                continue;
+            }
+            if let Some(e) = get(o, &mut seen) {
+                if far_worse(e_n, e) {
+                    best = Some((o, e));
+                }
+            }
+        }
+        match best {
+            Some((o, e)) => {
+                n = o;
+                e_n = e;
+            }
+            None => break,
+        }
+    }
+    seen.sort_by_key(|s| s.0);
+    (n, seen)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn far_worse_needs_ratio_and_gap() {
+        // Silverbox n = 1 vs 2 (VAF 12.5 vs 90.4), cascaded tanks n = 2 vs 3 (48.7 vs 62.4)
+        assert!(far_worse(0.875, 0.096));
+        assert!(far_worse(0.513, 0.376));
+        assert!(!far_worse(0.012, 0.008)); // ratio 1.5 but 0.4 VAF points
+        assert!(!far_worse(0.30, 0.26)); // 4 points, ratio 1.15
+        assert!(far_worse(f64::INFINITY, 0.5)); // a diverging order
+        assert!(!far_worse(0.5, f64::NAN));
+    }
+
+    #[test]
+    fn free_run_order_climbs_while_far_worse() {
+        let errs = [0.0, 0.875, 0.096, 0.09, 0.02, 0.019];
+        let (n, seen) = free_run_order(1, 5, |o| errs.get(o).copied());
+        // 1 -> 2 (the smaller far-better one); 2: 3 is not far better, 4 is -> 4; 5 is not
+        assert_eq!(n, 4);
+        assert_eq!(
+            seen.iter().map(|s| s.0).collect::<Vec<_>>(),
+            [1, 2, 3, 4, 5]
+        );
+        let (n, _) = free_run_order(1, 1, |o| errs.get(o).copied());
+        assert_eq!(n, 1);
+        let (n, _) = free_run_order(2, 6, |o| if o == 3 { None } else { errs.get(o).copied() });
+        assert_eq!(n, 4);
+        assert_eq!(free_run_order(3, 6, |_| None), (3, vec![]));
+    }
+}

@@ -1,0 +1,218 @@
+//! The `output-nonlinearity` effect: the model lacks a dependence on its own output level (a
+//! cubic spring, a pendulum's sin, a tank's square-root outflow). Written with the model
+//! contract's own-output factors (DESIGN.md section 5, docs/model-format.md), tried both ways:
+//!
+//! - **Lur'e feedback**: an input channel f(y) of the model's own output, f one of y^2, y^3,
+//!   |y| y, sin y, sqrt|y| (delay 0: the output equation does not use it);
+//! - **quasi-LPV**: a scheduling function y^2 or |y| (only with an output equation that does
+//!   not depend on scheduling).
+//!
+//! Each variant is fitted by [`crate::pipeline::fit_map`] (the pipeline's PBSID with the
+//! measured output in the new signal, as with feedback, then the output-error refinement
+//! through the feedback) and scored by the catalogue's held-out test like every other effect
+//! ([`super::effects`]): it is applied only when the free run on held-out data improves
+//! significantly and replicates on both training halves.
+
+use serde_json::{json, Map, Value};
+
+use super::effects::{Context, Scored};
+use super::refit::{Fitted, Noise, RefitError, Spec};
+use crate::data::Dataset;
+use crate::error::Error;
+use crate::model::{describe, Factor, FactorFn, ModelFile, ModelKind};
+
+/// Levenberg-Marquardt iterations of the refinement through the feedback.
+pub const REFINE_ITERATIONS: usize = 60;
+
+fn own(col: &str, pow: f64, func: Option<FactorFn>) -> Factor {
+    Factor {
+        pow,
+        func,
+        ..Factor::col(col)
+    }
+}
+
+/// Named products of factors.
+type Shapes = Vec<(String, Vec<Factor>)>;
+
+/// The Lur'e channels and scheduling functions of output column `c`, with their names.
+fn shapes(c: &str) -> (Shapes, Shapes) {
+    let lure = vec![
+        (format!("{c}^2"), vec![own(c, 2.0, None)]),
+        (format!("{c}^3"), vec![own(c, 3.0, None)]),
+        (
+            format!("|{c}|*{c}"),
+            vec![own(c, 1.0, Some(FactorFn::Abs)), own(c, 1.0, None)],
+        ),
+        (format!("sin({c})"), vec![own(c, 1.0, Some(FactorFn::Sin))]),
+        (format!("sqrt|{c}|"), vec![own(c, 0.5, None)]),
+    ];
+    let sched = vec![
+        (format!("{c}^2"), vec![own(c, 2.0, None)]),
+        (format!("|{c}|"), vec![own(c, 1.0, Some(FactorFn::Abs))]),
+    ];
+    (lure, sched)
+}
+
+/// The variants of `output-nonlinearity` for the current structure, or why there are none.
+pub fn candidates(ctx: &Context<'_>) -> (Vec<(String, Spec)>, Option<String>) {
+    let spec = ctx.spec;
+    let map = &spec.signals;
+    if spec.noise != Noise::Pbsid {
+        return (
+            vec![],
+            Some(
+                "the model has a noise model; output feedback refits are implemented without one"
+                    .into(),
+            ),
+        );
+    }
+    let outs: Vec<String> = map
+        .own_outputs()
+        .iter()
+        .flatten()
+        .map(|c| c.to_string())
+        .collect();
+    if outs.is_empty() {
+        return (
+            vec![],
+            Some("no output is a plain data column the model could feed back".into()),
+        );
+    }
+    let present = |p: &[Factor]| map.inputs.iter().chain(&map.scheduling).any(|q| q == p);
+    let mut out = Vec::new();
+    for c in &outs {
+        if ctx.train.column(c).is_none() {
+            continue;
+        }
+        let (lure, sched) = shapes(c);
+        for (name, prod) in lure {
+            if present(&prod) {
+                continue;
+            }
+            let mut sp = spec.clone();
+            sp.signals.inputs.push(prod);
+            out.push((
+                format!("Lur'e feedback: {name} of the model's own output as an input channel"),
+                sp,
+            ));
+        }
+        if spec.scheduled_output {
+            continue;
+        }
+        for (name, prod) in sched {
+            if present(&prod) {
+                continue;
+            }
+            let mut sp = spec.clone();
+            sp.signals.scheduling.push(prod);
+            out.push((
+                format!("quasi-LPV: scheduling on {name} of the model's own output"),
+                sp,
+            ));
+        }
+    }
+    let why = out
+        .is_empty()
+        .then(|| "every output-feedback shape is already in the model".to_string());
+    (out, why)
+}
+
+/// Fit a structure that reads the model's own output (the hook of
+/// [`super::refit::fit_spec`]): [`crate::pipeline::fit_map`], then the model file with its
+/// `fit` record extended.
+pub fn fit(spec: &Spec, train: &Dataset, base_fit: &Value) -> Result<Fitted, RefitError> {
+    if spec.arx.is_some() || spec.noise != Noise::Pbsid || spec.scheduled_output {
+        return Err(RefitError::Unsupported(
+            "a structure that reads the model's own output is refit as lpv-ss with a constant output equation and no noise model".into(),
+        ));
+    }
+    let mf = crate::pipeline::fit_map(&spec.signals, train, &spec.opts, REFINE_ITERATIONS)
+        .map_err(|e| match e {
+            Error::Data(d) => RefitError::Data(d),
+            Error::Fit { source, .. } => RefitError::Fit(source),
+            other => RefitError::Numerical(other.to_string()),
+        })?;
+    let mut rec = match base_fit {
+        Value::Object(m) => m.clone(),
+        _ => Map::new(),
+    };
+    let train_rec = json!({"file": train.source, "rows": train.len()});
+    let common = crate::record::pbsid_fit_record(&spec.opts, &mf.fit, train_rec);
+    let fed: Vec<String> = spec
+        .signals
+        .inputs
+        .iter()
+        .chain(spec.signals.scheduling.iter())
+        .filter(|p| p.iter().any(|f| spec.signals.own_output(f).is_some()))
+        .map(|p| describe(p))
+        .collect();
+    let updates = json!({
+        "reg": spec.reg_text,
+        "output_equation": "constant",
+        "output_feedback": {
+            "signals": fed,
+            "identification": "PBSID with the measured output in these signals, then output-error refinement (Levenberg-Marquardt) of the free run through the feedback",
+            "refinement_mse": mf.refinement.map(|(a, b, _)| json!([a, b])),
+            "refinement_iterations": mf.refinement.map(|(_, _, i)| i),
+        },
+        "constant_inputs": if mf.constant_inputs.is_empty() {
+            Value::Null
+        } else {
+            Value::from("varying inputs and outputs centred for PBSID; constant channels' B, D from the means, then refined")
+        },
+        "train_rows": train.len(),
+        "states": mf.model.n(),
+    });
+    for u in [common, updates] {
+        if let Value::Object(u) = u {
+            for (k, v) in u {
+                rec.insert(k, v);
+            }
+        }
+    }
+    let model = ModelFile {
+        kind: ModelKind::Ss(mf.model),
+        signals: spec.signals.clone(),
+        fit: Value::Object(rec),
+    };
+    // the loops must be well posed (the refinement keeps them so)
+    model
+        .signals
+        .check_loops(&model.kind)
+        .map_err(|e| RefitError::Numerical(e.to_string()))?;
+    Ok(Fitted {
+        model,
+        singular_values: mf.fit.singular_values.clone(),
+        order: mf.fit.order,
+        noise_orders: vec![],
+        sigma_p: None,
+    })
+}
+
+/// Evidence for `output-nonlinearity`: what the best variant feeds back and how the
+/// refinement through the loop went on the training data.
+pub fn evidence(best: Option<&Scored>) -> Vec<String> {
+    let mut ev = Vec::new();
+    if let Some(s) = best {
+        ev.push(format!(
+            "refit with {} explains {:.1} % of the held-out free-run error",
+            s.cand.detail,
+            100.0 * s.explained
+        ));
+        if let Some(f) = &s.fitted {
+            if let Some(r) = f.model.fit.get("output_feedback") {
+                if let Some(m) = r.get("refinement_mse").and_then(Value::as_array) {
+                    let (a, b) = (
+                        m.first().and_then(Value::as_f64).unwrap_or(f64::NAN),
+                        m.get(1).and_then(Value::as_f64).unwrap_or(f64::NAN),
+                    );
+                    ev.push(format!(
+                        "training free-run MSE through the feedback {a:.3e} after PBSID, {b:.3e} after the output-error refinement"
+                    ));
+                }
+            }
+        }
+    }
+    ev
+}

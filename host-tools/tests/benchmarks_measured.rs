@@ -1,0 +1,129 @@
+//! The public benchmarks of ../shared/data on their splits, before and after
+//! `lpvid diagnose --fix` (diagnose holds out the last fifth of the training data; the test
+//! set is never seen): docs/benchmarks-measured.md has the table beside the published
+//! figures. Each test asserts the improvement it measured (release mode, `-- --nocapture`
+//! prints the run); tests skip with a message when ../shared/data is absent.
+
+mod benchmarks_support;
+
+use benchmarks_support::{benches, describe, run_bench, shared_data, Bench, Result};
+
+fn bench(name: &str) -> Option<(Bench, Result)> {
+    let Some(dir) = shared_data() else {
+        eprintln!("skipped: ../shared/data not found");
+        return None;
+    };
+    let b = benches().into_iter().find(|b| b.name == name).unwrap();
+    let r = run_bench(&dir, &b);
+    println!("{}", describe(&b, &r));
+    Some((b, r))
+}
+
+fn applied(r: &Result) -> Vec<&'static str> {
+    r.outcome.report.applied.iter().map(|a| a.effect).collect()
+}
+
+/// Silverbox, trained on the multisine part, tested on the arrow: the cubic spring is found
+/// as a Lur'e feedback y^3 and the arrow's RMSE drops from about 15 mV to below the 2.5 mV
+/// target (the recurrent-network baselines: LSTM 2.68 mV, GRU 2.80 mV).
+#[test]
+fn silverbox_arrow() {
+    let Some((_, r)) = bench("silverbox") else {
+        return;
+    };
+    assert!(
+        applied(&r).contains(&"output-nonlinearity"),
+        "{:?}",
+        applied(&r)
+    );
+    let (_, before, _, after, after_est) = r.rmse[0];
+    assert!(before > 0.010, "{before}");
+    assert!(
+        after <= 0.0025 && after_est <= 0.0025,
+        "{after} {after_est}"
+    );
+    // without extrapolation (the first 32000 samples of the arrow)
+    let (_, b2, _, a2, _) = r.rmse[1];
+    assert!(a2 < b2 / 5.0 && a2 <= 0.0025, "{b2} {a2}");
+}
+
+/// Unbalanced disk (train on rows 18000-27999, test on 31500-34999): the gravity torque of the
+/// off-centre mass is found as an output feedback and the test RMSE drops below the 0.12 rad
+/// target (linear 0.219 rad and a good neural net 0.095 rad on the benchmark's hidden test).
+#[test]
+fn unbalanced_disk() {
+    let Some((_, r)) = bench("disk") else {
+        return;
+    };
+    assert!(
+        applied(&r).contains(&"output-nonlinearity"),
+        "{:?}",
+        applied(&r)
+    );
+    let (_, before, _, after, _) = r.rmse[0];
+    assert!(after < before / 2.0 && after <= 0.12, "{before} {after}");
+}
+
+/// `--order auto` never keeps an order whose held-out free run is far worse than order + 1
+/// or + 2 (pipeline `check_order`, rule `pbsid::far_worse`): the chosen order satisfies the
+/// rule against the orders the check compared, and the record says what was compared.
+#[test]
+fn order_auto_checks_the_free_run() {
+    let Some(dir) = shared_data() else {
+        eprintln!("skipped: ../shared/data not found");
+        return;
+    };
+    use lpvid_host::pipeline::{identify, DataFile, PbsidSettings};
+    let tmp = tempfile::tempdir().unwrap();
+    let sb = lpvid_host::data::Dataset::read_csv(&dir.join("silverbox-snls80mv.csv")).unwrap();
+    let part = benchmarks_support::segment(&sb, 40575, sb.len(), "");
+    let p = tmp.path().join("sb.csv");
+    std::fs::write(&p, part.to_csv_bytes(&p).unwrap()).unwrap();
+    let files = [
+        ("silverbox multisine", p.clone()),
+        ("cascaded tanks", dir.join("cascaded-tanks-estimation.csv")),
+        ("unbalanced disk", dir.join("unbalanced-disk.csv")),
+    ];
+    for (name, path) in files {
+        for past in [5, 10, 20] {
+            let id = identify(
+                &DataFile::read(&path).unwrap(),
+                None,
+                &PbsidSettings::new(past),
+            )
+            .unwrap();
+            let check = &id.model.fit["order_check"];
+            println!(
+                "{name}, past {past}: order {} ({})\n  {check}",
+                id.fit.order, id.fit.order_reason
+            );
+            let seen: Vec<(u64, f64)> = check["free_run"]
+                .as_array()
+                .unwrap()
+                .iter()
+                .map(|e| (e["order"].as_u64().unwrap(), e["vaf"].as_f64().unwrap()))
+                .collect();
+            let n = id.fit.order as u64;
+            let e = |o: u64| seen.iter().find(|s| s.0 == o).map(|s| 1.0 - s.1 / 100.0);
+            let en = e(n).unwrap();
+            for o in [n + 1, n + 2] {
+                if let Some(eo) = e(o) {
+                    assert!(
+                        !lpvid_host::pbsid::far_worse(en, eo),
+                        "{name} past {past}: {check}"
+                    );
+                }
+            }
+            if name.starts_with("silverbox") && past == 20 {
+                // measured: the gap gives n = 1 (free-run VAF 8.8 % on the last fifth); the
+                // check moves to n = 3 (97.1 %; n = 2 gives 87.1 %)
+                assert_eq!(check["gap_order"], 1, "{check}");
+                assert!(n >= 2 && e(n).unwrap() < 0.1, "{check}");
+            }
+            if n != check["gap_order"].as_u64().unwrap() {
+                // a changed order is written as a fixed rule, so diagnose's refits reproduce it
+                assert_eq!(id.model.fit["order_rule"], n.to_string());
+            }
+        }
+    }
+}

@@ -1,0 +1,264 @@
+//! The `output-nonlinearity` effect of `lpvid diagnose` on random families of plants whose
+//! dynamics depend on their own output level: a cubic spring (Duffing), a pendulum (sin of the
+//! angle), a tank with square-root outflow; random parameters, effect strengths, noise levels
+//! (1-10 % of the output's spread) and input spectra; and clean linear plants of random order
+//! 1-4 for false alarms. Each plant is identified as a user would (`pipeline::identify`, past
+//! 8, order auto), then diagnosed with `--fix` on separate validation data.
+//! Release mode: `cargo test --release -p lpvid-host --test output_nonlinearity -- --nocapture`
+//! prints the table of every run.
+
+use lpvid_host::data::Dataset;
+use lpvid_host::diagnose::{diagnose, Options};
+use lpvid_host::pipeline::{identify, DataFile, PbsidSettings};
+use lpvid_host::simulate::{run, Mode, X0};
+use rand::rngs::StdRng;
+use rand::{Rng, SeedableRng};
+use rand_distr::{Distribution, Normal};
+
+#[derive(Clone, Copy, Debug, PartialEq)]
+enum Plant {
+    Duffing,
+    Pendulum,
+    Tank,
+    Linear,
+}
+
+/// One record of a random plant: (u, y measured). `pole` is the input filter's pole (the
+/// input spectrum), `noise` the output noise as a fraction of std(y).
+fn record(
+    plant: Plant,
+    prm: &[f64],
+    n: usize,
+    pole: f64,
+    noise: f64,
+    seed: u64,
+) -> (Vec<f64>, Vec<f64>) {
+    let mut rng = StdRng::seed_from_u64(seed);
+    let g = Normal::new(0.0, 1.0).unwrap();
+    let gain = (1.0 - pole * pole).sqrt();
+    let mut lp = 0.0;
+    let mut u = Vec::with_capacity(n);
+    let mut y = Vec::with_capacity(n);
+    let mut x = [0.0f64; 4];
+    for _ in 0..n {
+        lp = pole * lp + gain * g.sample(&mut rng);
+        match plant {
+            Plant::Duffing => {
+                // x1' = x2, x2' = -x1 - c x2 - k3 x1^3 + a u (semi-implicit Euler, h = 0.1)
+                let (c, k3, a) = (prm[0], prm[1], prm[2]);
+                let uk = a * lp;
+                y.push(x[0]);
+                let v = x[1] + 0.1 * (-x[0] - c * x[1] - k3 * x[0].powi(3) + uk);
+                x = [x[0] + 0.1 * v, v, 0.0, 0.0];
+                u.push(uk);
+            }
+            Plant::Pendulum => {
+                // th'' = -w^2 sin th - c th' + a u (h = 0.05)
+                let (w2, c, a) = (prm[0], prm[1], prm[2]);
+                let uk = a * lp;
+                y.push(x[0]);
+                let v = x[1] + 0.05 * (-w2 * x[0].sin() - c * x[1] + uk);
+                x = [x[0] + 0.05 * v, v, 0.0, 0.0];
+                u.push(uk);
+            }
+            Plant::Tank => {
+                // h' = -q sqrt(h) + b u with a positive pump input (h = 0.5)
+                let (q, b) = (prm[0], prm[1]);
+                let uk = (1.0 + prm[2] * lp).max(0.05);
+                y.push(x[0]);
+                x[0] = (x[0] + 0.5 * (-q * x[0].max(0.0).sqrt() + b * uk)).max(0.0);
+                u.push(uk);
+            }
+            Plant::Linear => {
+                // y(k) = -sum a_i y(k-i) + b u(k-1), poles prm[1..]
+                let order = prm[0] as usize;
+                let a = poly(&prm[1..=order]);
+                // x holds y(k-1), ..., y(k-order)
+                let yk = -(1..=order).map(|i| a[i] * x[i - 1]).sum::<f64>()
+                    + u.last().copied().unwrap_or(0.0);
+                y.push(yk);
+                for i in (1..order).rev() {
+                    x[i] = x[i - 1];
+                }
+                x[0] = yk;
+                u.push(lp);
+            }
+        }
+    }
+    let m = y.iter().sum::<f64>() / n as f64;
+    let sd = (y.iter().map(|v| (v - m) * (v - m)).sum::<f64>() / n as f64).sqrt();
+    let ym = y
+        .iter()
+        .map(|v| v + noise * sd * g.sample(&mut rng))
+        .collect();
+    (u, ym)
+}
+
+/// Coefficients [1, a1, ..., an] of prod (z - p_i) for real poles.
+fn poly(p: &[f64]) -> Vec<f64> {
+    let mut c = vec![1.0];
+    for &r in p {
+        let mut n = vec![0.0; c.len() + 1];
+        for (i, v) in c.iter().enumerate() {
+            n[i] += v;
+            n[i + 1] -= r * v;
+        }
+        c = n;
+    }
+    c
+}
+
+fn csv(name: &str, u: &[f64], y: &[f64]) -> DataFile {
+    let mut s = String::from("u1,y1\n");
+    for (a, b) in u.iter().zip(y) {
+        s.push_str(&format!("{a},{b}\n"));
+    }
+    DataFile::from_bytes(name, s.as_bytes()).unwrap()
+}
+
+fn mse(m: &lpvid_host::model::ModelFile, ds: &Dataset) -> f64 {
+    let r = run(m, ds, Mode::FreeRun, X0::Zero).unwrap();
+    let e = &r.y - &r.yhat;
+    e.iter().map(|v| v * v).sum::<f64>() / e.len() as f64
+}
+
+/// Outcome of one plant: (named output-nonlinearity first, applied, error ratio before/after,
+/// any finding at all).
+fn one(plant: Plant, seed: u64) -> (bool, bool, f64, bool, String) {
+    let mut rng = StdRng::seed_from_u64(seed);
+    let prm: Vec<f64> = match plant {
+        Plant::Duffing => vec![
+            rng.gen_range(0.2..0.6),
+            rng.gen_range(0.5..3.0),
+            rng.gen_range(0.6..1.2),
+        ],
+        Plant::Pendulum => {
+            // the torque stays below what would swing it over the top most of the time
+            // (|a u| < w^2 for |u| < 1.4-2.5): the angle reaches 0.5-1.4 rad
+            let w2: f64 = rng.gen_range(2.0..6.0);
+            vec![w2, rng.gen_range(0.3..1.0), w2 * rng.gen_range(0.4..0.7)]
+        }
+        Plant::Tank => vec![
+            rng.gen_range(0.3..0.8),
+            rng.gen_range(0.3..0.8),
+            rng.gen_range(0.4..0.8),
+        ],
+        Plant::Linear => {
+            let order = rng.gen_range(1..=3usize);
+            let mut v = vec![order as f64];
+            for _ in 0..order {
+                v.push(rng.gen_range(0.3..0.9));
+            }
+            v
+        }
+    };
+    let pole = rng.gen_range(0.5..0.9);
+    let noise = rng.gen_range(0.01..0.10);
+    let (u, y) = record(plant, &prm, 3000, pole, noise, seed * 7 + 1);
+    let (uv, yv) = record(plant, &prm, 1500, pole, noise, seed * 7 + 2);
+    let train = csv("train.csv", &u, &y);
+    let val = csv("val.csv", &uv, &yv).data;
+    let id = identify(&train, None, &PbsidSettings::new(8)).unwrap();
+    let o = diagnose(
+        &id.model,
+        &train.data,
+        &val,
+        &Options {
+            fix: true,
+            max_steps: 1,
+            threads: 0,
+        },
+    )
+    .unwrap();
+    let first = o
+        .report
+        .findings
+        .first()
+        .filter(|f| f.significant)
+        .map(|f| f.effect)
+        .unwrap_or("none");
+    let applied = o.report.applied.first().map(|a| a.effect);
+    let ratio = mse(&id.model, &val) / mse(&o.model, &val);
+    if std::env::var("LPVID_VERBOSE").is_ok() {
+        for f in o.report.findings.iter().take(3) {
+            println!(
+                "    finding {} {} {:.3} p {:.1e} rep {:?} sig {}",
+                f.effect, f.detail, f.explained, f.p_value, f.replication, f.significant
+            );
+        }
+        for v in &o.report.steps[0].variants_scored {
+            println!(
+                "    {} {} {:.3} p {:.1e} {:?}",
+                v.effect, v.detail, v.explained, v.p_value, v.error
+            );
+        }
+    }
+    let line = format!(
+        "{plant:?} seed {seed}: prm {prm:.2?}, input pole {pole:.2}, noise {:.1} %, order {}: first {first}, applied {}, error ratio {ratio:.2}",
+        100.0 * noise,
+        id.fit.order,
+        applied.unwrap_or("nothing"),
+    );
+    (
+        first == "output-nonlinearity",
+        applied == Some("output-nonlinearity"),
+        ratio,
+        first != "none",
+        line,
+    )
+}
+
+/// Recall and error ratio of `output-nonlinearity` on the three nonlinear families, and no
+/// output-nonlinearity finding on clean linear plants. The figures asserted are those
+/// measured on these seeds (docs/bench-diagnose.md has the spread); a plant whose
+/// nonlinearity is too weak to matter at its noise level may honestly be left alone.
+#[test]
+fn output_nonlinearity_on_random_plant_families() {
+    let mut lines = Vec::new();
+    let mut named = 0;
+    let mut total = 0;
+    let mut ratios = Vec::new();
+    let only = std::env::var("LPVID_PLANT").ok();
+    for plant in [Plant::Duffing, Plant::Pendulum, Plant::Tank] {
+        if only.as_deref().is_some_and(|p| p != format!("{plant:?}")) {
+            continue;
+        }
+        for seed in 1..=3u64 {
+            let (hit, applied, ratio, _, line) = one(plant, seed + 10 * plant as u64);
+            total += 1;
+            named += usize::from(hit);
+            if applied {
+                ratios.push(ratio);
+                // never applied when it does not help on held-out data
+                assert!(ratio > 1.0, "{line}");
+            }
+            lines.push(line);
+        }
+    }
+    let mut false_alarms = 0;
+    for seed in 1..=4u64 {
+        let (hit, applied, ratio, _, line) = one(Plant::Linear, 100 + seed);
+        false_alarms += usize::from(hit);
+        if applied {
+            assert!(ratio > 1.0, "{line}");
+        }
+        lines.push(line);
+    }
+    ratios.sort_by(f64::total_cmp);
+    let median = ratios.get(ratios.len() / 2).copied().unwrap_or(0.0);
+    println!("{}", lines.join("\n"));
+    println!(
+        "output-nonlinearity named first in {named} of {total} nonlinear plants; error ratio after --fix: median {median:.2}, range {:.2}-{:.2}; false alarms on clean linear plants: {false_alarms} of 4",
+        ratios.first().copied().unwrap_or(0.0),
+        ratios.last().copied().unwrap_or(0.0)
+    );
+    let text = lines.join("\n");
+    // measured on these seeds: 6 of 9 (Duffing 2/3, tank 3/3, pendulum 1/3). Misses: the best
+    // variant of the effect (diagnose replicates only that one) is sometimes the quasi-LPV
+    // scheduling on y^2, whose refits on the training halves do not hold up (Duffing seed 2);
+    // the pendulum's sin is close to linear at small angles and noise hides it at larger ones
+    // (seeds 12, 13: nothing found, nothing applied).
+    assert!(named * 3 >= total * 2, "{text}");
+    assert!(median >= 3.0, "{text}");
+    assert_eq!(false_alarms, 0, "{text}");
+}
