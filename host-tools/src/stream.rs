@@ -268,6 +268,7 @@ impl<'a> FreeRun<'a> {
             bfr_mean: crate::metrics::mean(&bfr),
             vaf,
             bfr,
+            skipped: 0,
             diverged_at: self.diverged_at,
         }
     }
