@@ -134,6 +134,79 @@ pub fn gram_from_rows(
     Ok(gram)
 }
 
+/// Add the vectors `range` (each written by `row(k, dst)`) into `gram`, in batches of
+/// [`GRAM_BATCH`] through [`gram_update_batch`].
+pub fn gram_add_rows<S: AsRef<[f64]> + AsMut<[f64]>>(
+    gram: &mut lpvid::Gram<f64, S>,
+    range: std::ops::Range<usize>,
+    row: &(impl Fn(usize, &mut [f64]) + ?Sized),
+) -> Result<(), lpvid::Error> {
+    let len = gram.dim();
+    let mut buf = vec![0.0; GRAM_BATCH * len];
+    let mut k = range.start;
+    while k < range.end {
+        let nb = GRAM_BATCH.min(range.end - k);
+        for b in 0..nb {
+            row(k + b, &mut buf[b * len..(b + 1) * len]);
+        }
+        gram_update_batch(gram, &buf[..nb * len], nb)?;
+        k += nb;
+    }
+    Ok(())
+}
+
+/// Multiply-adds (count x len^2 / 2) from which a Gram accumulation is split over two
+/// threads: below it the thread's start and the merge cost more than half the work
+/// (`benches/spine.rs`, `gram_two_halves`).
+pub const SPLIT_MIN_WORK: f64 = 5e7;
+
+/// Whether accumulating `count` vectors of length `len` gains from two threads.
+pub fn split_pays(len: usize, count: usize) -> bool {
+    let work = count as f64 * (len * len) as f64 / 2.0;
+    work >= SPLIT_MIN_WORK && std::thread::available_parallelism().is_ok_and(|n| n.get() >= 2)
+}
+
+/// Add the vectors `range` into `a` and the second half of them into `b` on a second thread
+/// when `split` (the statistics are sums: the caller merges `b` into `a` with the core's
+/// merge when done), else all into `a` on this thread.
+pub fn gram_add_rows_split<S: AsRef<[f64]> + AsMut<[f64]> + Send>(
+    a: &mut lpvid::Gram<f64, S>,
+    b: &mut lpvid::Gram<f64, S>,
+    range: std::ops::Range<usize>,
+    row: &(impl Fn(usize, &mut [f64]) + Sync),
+    split: bool,
+) -> Result<(), lpvid::Error> {
+    if !split || range.len() < 2 * GRAM_BATCH {
+        return gram_add_rows(a, range, row);
+    }
+    let mid = range.start + range.len() / 2;
+    let (first, second) = std::thread::scope(|sc| {
+        let h = sc.spawn(|| gram_add_rows(b, mid..range.end, row));
+        let first = gram_add_rows(a, range.start..mid, row);
+        let second = h.join().unwrap_or_else(|e| std::panic::resume_unwind(e));
+        (first, second)
+    });
+    first.and(second)
+}
+
+/// [`gram_from_rows`] with the two halves on two threads when [`split_pays`] (`split`
+/// false: always one thread), merged with the core's merge.
+pub fn gram_from_rows_split(
+    len: usize,
+    count: usize,
+    row: impl Fn(usize, &mut [f64]) + Sync,
+    split: bool,
+) -> Result<lpvid::Gram<f64, Vec<f64>>, lpvid::Error> {
+    let mut a = lpvid::Gram::new(len, vec![0.0; lpvid::packed_len(len)])?;
+    let mut b = lpvid::Gram::new(len, vec![0.0; lpvid::packed_len(len)])?;
+    let split = split && split_pays(len, count);
+    gram_add_rows_split(&mut a, &mut b, 0..count, &row, split)?;
+    if split {
+        a.merge(&b)?;
+    }
+    Ok(a)
+}
+
 /// Mean and (population) standard deviation of a column.
 pub fn mean_std(v: impl Iterator<Item = f64> + Clone) -> (f64, f64) {
     let n = v.clone().count() as f64;

@@ -31,7 +31,7 @@ pub const CHUNK_ROWS: usize = 8192;
 
 /// Training files at least this large are streamed when the options allow; smaller ones are
 /// read whole (the same model either way, and a small file costs nothing to hold).
-pub const STREAM_MIN_BYTES: u64 = 16 << 20;
+pub const STREAM_MIN_BYTES: u64 = 4 << 20;
 
 /// Whether `lpvid pbsid` streams this training file with these settings.
 pub fn should_stream(path: &Path, settings: &PbsidSettings) -> bool {

@@ -61,9 +61,13 @@ pub(crate) fn primal_states(
 ) -> Result<(Vec<f64>, DMatrix<f64>, RegressionInfo), FitError> {
     let q = dims.q()?;
     let len = stat_vector_len(dims, StatsLayout::Plain)?;
-    let gram = crate::linalg::gram_from_rows(len, windows, |k, row| {
-        write_stat_vector(dims, StatsLayout::Plain, slab, k, row);
-    })?;
+    // two halves on two threads when large enough to gain, merged (the statistics are sums)
+    let gram = crate::linalg::gram_from_rows_split(
+        len,
+        windows,
+        |k, row| write_stat_vector(dims, StatsLayout::Plain, slab, k, row),
+        true,
+    )?;
     let stats = dense(&gram, len);
     let (reg, sv, t) = primal_regression_svd(dims, f, &stats, windows, opts)?;
     let mut x = DMatrix::zeros(t.nrows(), windows + 1);

@@ -28,9 +28,6 @@ use super::scaling::{scaled_rows, stat_scale_vector, unscale, ChannelSums, Scali
 use super::settings::{PbsidFit, PbsidOptions, Reg, Solver};
 use crate::lpvss::Signals;
 
-/// Windows per batch of the Gram update.
-const BATCH: usize = crate::linalg::GRAM_BATCH;
-
 /// The last p sample rows of the data seen so far (flat rows [u, y, 1, p]), prepended to the
 /// next chunk so that the windows across the boundary are formed.
 #[derive(Debug, Clone, Default)]
@@ -95,9 +92,11 @@ pub struct PassOne {
     len: usize,
     sums: ChannelSums,
     gram: Gram<f64, Vec<f64>>,
+    /// The second thread's share of the Gram, merged in [`PassOne::finish`].
+    gram2: Gram<f64, Vec<f64>>,
+    split: bool,
     tail: Tail,
     samples: usize,
-    buf: Vec<f64>,
 }
 
 impl PassOne {
@@ -114,9 +113,10 @@ impl PassOne {
             len,
             sums: ChannelSums::empty(r, l, s),
             gram: Gram::new(len, vec![0.0; packed_len(len)])?,
+            gram2: Gram::new(len, vec![0.0; packed_len(len)])?,
+            split: false,
             tail: Tail::default(),
             samples: 0,
-            buf: vec![0.0; BATCH * len],
         })
     }
 
@@ -135,16 +135,21 @@ impl PassOne {
         }
         let slab = Slab::new(&all, self.dims.r, self.dims.l, self.dims.m())?;
         let windows = rows - p;
-        let mut k = 0;
-        while k < windows {
-            let nb = BATCH.min(windows - k);
-            for b in 0..nb {
-                let row = &mut self.buf[b * self.len..(b + 1) * self.len];
-                write_stat_vector(&self.dims, StatsLayout::Plain, &slab, k + b, row);
-            }
-            crate::linalg::gram_update_batch(&mut self.gram, &self.buf[..nb * self.len], nb)?;
-            k += nb;
-        }
+        let dims = self.dims;
+        let row = |k: usize, dst: &mut [f64]| {
+            write_stat_vector(&dims, StatsLayout::Plain, &slab, k, dst);
+        };
+        // the chunk's two halves on two threads when large enough to gain; the second
+        // thread's sums are merged at the end (the statistics are sums)
+        let split = crate::linalg::split_pays(self.len, windows);
+        self.split |= split;
+        crate::linalg::gram_add_rows_split(
+            &mut self.gram,
+            &mut self.gram2,
+            0..windows,
+            &row,
+            split,
+        )?;
         Ok(())
     }
 
@@ -155,7 +160,10 @@ impl PassOne {
 
     /// Regression (13), the SVD and the order from the accumulated statistics: what pass 2
     /// needs. `Err(KernelCheaper)` when the options' automatic choice is the kernel form.
-    pub fn finish(self, opts: &PbsidOptions) -> Result<PassTwo, NotStreamed> {
+    pub fn finish(mut self, opts: &PbsidOptions) -> Result<PassTwo, NotStreamed> {
+        if self.split {
+            self.gram.merge(&self.gram2)?;
+        }
         let dims = self.dims;
         let p = dims.p;
         let min_samples = p + 3;

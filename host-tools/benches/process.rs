@@ -1,0 +1,209 @@
+//! Where the time of a small `lpvid pbsid` process goes, and what the issue-16 changes are
+//! compared against, each pair in the same run:
+//!
+//! - `process_stages_B1_p3_N1000`: the stages of `lpvid pbsid --train fixtures/b1-train.csv
+//!   --past 3` one by one (CSV parse, fit, observer step with the stability report, the
+//!   free-run score, the model JSON);
+//! - `stability_B1_p3`: the box maximum of the predictor's spectral radius by the dense
+//!   lattice with nalgebra's Schur decomposition (before), the dense lattice with
+//!   `SmallEig`, and the coarse lattice + ascent (now); the stability regions;
+//! - `tridiagonal_seq_vs_par`: faer's tridiagonal reduction on one thread vs the pool;
+//! - `gram_two_halves_B1_p3`: the plain statistics on one thread vs two halves on two
+//!   threads merged with the core's merge;
+//! - `streamed_vs_in_memory_B1_p3_N20000`: the primal fit from the whole record vs the
+//!   two streamed passes over chunks of 8192 samples.
+
+use criterion::{black_box, criterion_group, criterion_main, BenchmarkId, Criterion};
+use lpvid::{stat_vector_len, write_stat_vector, PbsidDims, Slab, StatsLayout};
+use lpvid_host::linalg::{gram_from_rows_split, schur_spectral_radius, Tridiagonal};
+use lpvid_host::lpvss::Signals;
+use lpvid_host::observer::{
+    max_predictor_radius, max_predictor_radius_dense, observer_step, predictor_matrix,
+    stability_regions, ObserverRequest, SchedBox, REGION_WIDEN, REPORT_GRID,
+};
+use lpvid_host::pbsid::stream::PassOne;
+use lpvid_host::pbsid::{fit, PbsidOptions, Solver};
+use lpvid_host::pipeline::{identify, DataFile, PbsidSettings};
+use lpvid_host::simulate::{score, Mode};
+use lpvid_host::systems;
+
+const B1: &[u8] = include_bytes!("../../fixtures/b1-train.csv");
+
+fn stages(c: &mut Criterion) {
+    let mut group = c.benchmark_group("process_stages_B1_p3_N1000");
+    group.sample_size(20);
+    let settings = PbsidSettings::new(3);
+    group.bench_function("csv_parse", |b| {
+        b.iter(|| black_box(DataFile::from_bytes("b1-train.csv", B1).unwrap().data.len()))
+    });
+    let train = DataFile::from_bytes("b1-train.csv", B1).unwrap();
+    let (map, sig) = lpvid_host::pipeline::training_signals(&train.data, 3).unwrap();
+    group.bench_function("fit", |b| {
+        b.iter(|| black_box(fit(&sig, &settings.fit).unwrap().order))
+    });
+    let f = fit(&sig, &settings.fit).unwrap();
+    let names: Vec<String> = (1..=3).map(|j| format!("p{j}")).collect();
+    group.bench_function("observer_step", |b| {
+        b.iter(|| {
+            let st = observer_step(
+                &f.model,
+                f.states.as_ref(),
+                &sig,
+                3,
+                &names,
+                &ObserverRequest::default(),
+                false,
+            )
+            .unwrap();
+            black_box(st.max_rho)
+        })
+    });
+    let id = identify(&train, None, &settings).unwrap();
+    group.bench_function("free_run_score", |b| {
+        b.iter(|| {
+            black_box(
+                score(&id.model, &train.data, Mode::FreeRun)
+                    .unwrap()
+                    .vaf_mean,
+            )
+        })
+    });
+    group.bench_function("model_json", |b| {
+        b.iter(|| black_box(id.model.to_json_string().len()))
+    });
+    group.bench_function("identify_all", |b| {
+        b.iter(|| black_box(identify(&train, None, &settings).unwrap().fit.order))
+    });
+    let _ = map;
+    group.finish();
+}
+
+fn stability(c: &mut Criterion) {
+    let train = DataFile::from_bytes("b1-train.csv", B1).unwrap();
+    let (_, sig) = lpvid_host::pipeline::training_signals(&train.data, 3).unwrap();
+    let f = fit(&sig, &PbsidOptions::new(3)).unwrap();
+    let names: Vec<String> = (1..=3).map(|j| format!("p{j}")).collect();
+    let sbox = SchedBox::from_signals(&names, &sig);
+    let reference: Vec<f64> = (0..3).map(|j| sig.p.column(j).mean()).collect();
+    let mut group = c.benchmark_group("stability_B1_p3");
+    group.sample_size(10);
+    group.bench_function("box_max_dense_nalgebra_schur(before)", |b| {
+        b.iter(|| {
+            black_box(
+                sbox.grid(REPORT_GRID)
+                    .iter()
+                    .map(|mu| schur_spectral_radius(&predictor_matrix(&f.model, mu)))
+                    .fold(0.0, f64::max),
+            )
+        })
+    });
+    group.bench_function("box_max_dense_small_eig", |b| {
+        b.iter(|| black_box(max_predictor_radius_dense(&f.model, &sbox, REPORT_GRID)))
+    });
+    group.bench_function("box_max_coarse_and_ascent(now)", |b| {
+        b.iter(|| black_box(max_predictor_radius(&f.model, &sbox, REPORT_GRID)))
+    });
+    group.bench_function("regions_adaptive_march(now)", |b| {
+        b.iter(|| black_box(stability_regions(&f.model, &sbox, &reference, REGION_WIDEN).len()))
+    });
+    group.finish();
+}
+
+fn tridiagonal(c: &mut Criterion) {
+    let mut group = c.benchmark_group("tridiagonal_seq_vs_par");
+    group.sample_size(10);
+    for n in [422usize, 995] {
+        let x = nalgebra::DMatrix::<f64>::from_fn(n, n + 50, |i, j| {
+            ((i * 31 + j * 17) % 101) as f64 / 101.0 - 0.5
+        });
+        let a = &x * x.transpose();
+        group.bench_function(BenchmarkId::new("one_thread", n), |b| {
+            b.iter(|| black_box(Tridiagonal::new_with(&a, faer::Par::Seq).dim()))
+        });
+        group.bench_function(BenchmarkId::new("thread_pool", n), |b| {
+            b.iter(|| black_box(Tridiagonal::new_with(&a, faer::Par::rayon(0)).dim()))
+        });
+    }
+    group.finish();
+}
+
+fn raw_rows(sig: &Signals) -> Vec<f64> {
+    let mut rows = Vec::new();
+    for k in 0..sig.len() {
+        rows.extend(sig.u.row(k).iter());
+        rows.extend(sig.y.row(k).iter());
+        rows.push(1.0);
+        rows.extend(sig.p.row(k).iter());
+    }
+    rows
+}
+
+fn gram_halves(c: &mut Criterion) {
+    let mut group = c.benchmark_group("gram_two_halves_B1_p3");
+    group.sample_size(10);
+    for n in [1000usize, 20_000] {
+        let exp = systems::b1(n, 0.05, 3);
+        let rows = raw_rows(&exp.train);
+        let dims = PbsidDims::new(2, 3, 3, 3).unwrap();
+        let slab = Slab::new(&rows, 2, 3, 4).unwrap();
+        let len = stat_vector_len(&dims, StatsLayout::Plain).unwrap();
+        let windows = n - 3;
+        let row =
+            |k: usize, d: &mut [f64]| write_stat_vector(&dims, StatsLayout::Plain, &slab, k, d);
+        group.bench_function(BenchmarkId::new("one_thread", n), |b| {
+            b.iter(|| {
+                black_box(
+                    gram_from_rows_split(len, windows, row, false)
+                        .unwrap()
+                        .dim(),
+                )
+            })
+        });
+        group.bench_function(BenchmarkId::new("two_halves_merged", n), |b| {
+            b.iter(|| black_box(gram_from_rows_split(len, windows, row, true).unwrap().dim()))
+        });
+    }
+    group.finish();
+}
+
+fn streamed(c: &mut Criterion) {
+    let exp = systems::b1(20_000, 0.05, 4);
+    let mut o = PbsidOptions::new(3);
+    o.solver = Solver::Primal;
+    let mut group = c.benchmark_group("streamed_vs_in_memory_B1_p3_N20000");
+    group.sample_size(10);
+    group.bench_function("in_memory", |b| {
+        b.iter(|| black_box(fit(&exp.train, &o).unwrap().order))
+    });
+    let pieces: Vec<Signals> = (0..exp.train.len())
+        .step_by(8192)
+        .map(|k| exp.train.slice(k, 8192.min(exp.train.len() - k)))
+        .collect();
+    group.bench_function("streamed_chunks_8192", |b| {
+        b.iter(|| {
+            let mut one = PassOne::new(2, 3, 3, &o).unwrap();
+            for c in &pieces {
+                one.update(c).unwrap();
+            }
+            let Ok(mut two) = one.finish(&o) else {
+                panic!()
+            };
+            for c in &pieces {
+                two.update(c).unwrap();
+            }
+            black_box(two.finish().unwrap().order)
+        })
+    });
+    group.finish();
+}
+
+fn benches(c: &mut Criterion) {
+    stages(c);
+    stability(c);
+    tridiagonal(c);
+    gram_halves(c);
+    streamed(c);
+}
+
+criterion_group!(process, benches);
+criterion_main!(process);
