@@ -379,7 +379,23 @@ pub fn fit_map(
         // a second start: the map without its feedback signals (their B columns and A^(i),
         // B^(i) zero), so the loop starts open and stable when PBSID's start with the
         // measured output diverges in free run; the lower training error wins
-        if let Some(start) = open_loop_start(map, ds, opts, &model)? {
+        // (only when the first refinement ended above the open-loop start's own error: the
+        // second refinement doubles the cost)
+        let start = open_loop_start(map, ds, opts, &model)?.filter(|st| {
+            let yh = crate::simulate::free_run_ss(
+                st,
+                &sig,
+                &fb,
+                &nalgebra::DVector::zeros(st.n()),
+                sig.len(),
+            );
+            let e = (&sig.y - yh).map(|v| v * v).mean();
+            !matches!(
+                rf.mse_after.partial_cmp(&e),
+                Some(std::cmp::Ordering::Less | std::cmp::Ordering::Equal)
+            )
+        });
+        if let Some(start) = start {
             let alt = crate::refine::refine_d_columns(&start, &sig, &fb, &d_cols, refine_iters);
             if alt.mse_after < rf.mse_after.min(rf.mse_before) {
                 rf = crate::refine::Refined {
@@ -390,6 +406,23 @@ pub fn fit_map(
         }
         if rf.mse_after < rf.mse_before {
             model = rf.model;
+            // K was PBSID's, for the matrices before the refinement: keep it only when the
+            // one-step predictor of the refined model is better with it than without (K = 0:
+            // the model run on the measured signals)
+            let one_step = |m: &LpvSs| {
+                let yh = m.run_from(&sig, &nalgebra::DVector::zeros(m.n()), true);
+                let e = (&sig.y - yh).map(|v| v * v).sum();
+                if e.is_finite() {
+                    e
+                } else {
+                    f64::INFINITY
+                }
+            };
+            let mut open = model.clone();
+            open.k.iter_mut().for_each(|k| k.fill(0.0));
+            if one_step(&open) < one_step(&model) {
+                model = open;
+            }
         }
         refinement = Some((
             rf.mse_before,

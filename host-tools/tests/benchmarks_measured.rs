@@ -127,3 +127,16 @@ fn order_auto_checks_the_free_run() {
         }
     }
 }
+
+/// EMPS (emps.csv -> emps-pulses.csv): the force-driven model drifts; the logged position
+/// reference q_ref of the closed loop is found as an input and the test RMSE drops by more
+/// than two decades (not comparable with the benchmark's force-input figures).
+#[test]
+fn emps() {
+    let Some((_, r)) = bench("emps") else {
+        return;
+    };
+    assert!(applied(&r).contains(&"unused-signal"), "{:?}", applied(&r));
+    let (_, before, _, after, _) = r.rmse[0];
+    assert!(after < before / 100.0, "{before} {after}");
+}

@@ -127,8 +127,22 @@ pub fn fit(spec: &Spec, train: &Dataset, base_fit: &Value) -> Result<Fitted, Ref
             "a structure that reads the model's own output is refit as lpv-ss with a constant output equation and no noise model".into(),
         ));
     }
-    let mf = crate::pipeline::fit_map(&spec.signals, train, &spec.opts, REFINE_ITERATIONS)
-        .map_err(|e| match e {
+    // the refinement's cost grows with (parameters)^2 x samples: fewer iterations for large
+    // models (a 9-state, 2-output rotor model gets about 20)
+    let n = match spec.opts.order {
+        crate::pbsid::Order::Fixed(n) => n,
+        crate::pbsid::Order::Auto => spec.opts.max_order.min(10),
+    };
+    let (r, l, m) = (
+        spec.signals.inputs.len(),
+        spec.signals.outputs.len(),
+        spec.signals.m(),
+    );
+    let np = (m * n * (n + r) + l * n + n) as f64;
+    let budget = 5e9 / (np * np * (train.len() * l) as f64);
+    let iters = (budget as usize).clamp(5, REFINE_ITERATIONS);
+    let mf =
+        crate::pipeline::fit_map(&spec.signals, train, &spec.opts, iters).map_err(|e| match e {
             Error::Data(d) => RefitError::Data(d),
             Error::Fit { source, .. } => RefitError::Fit(source),
             other => RefitError::Numerical(other.to_string()),
