@@ -183,3 +183,78 @@ fn diagnose_an_arx_model_reports_its_residual() {
     assert!(rep["applied"].as_array().unwrap().is_empty(), "{note}");
     assert!(rep["residual"]["one_step"]["whiteness"][0]["p_value"].is_number());
 }
+
+/// When nothing is applied, the note says for each candidate, in one line, the rule that
+/// blocked it, in the words of the JSON's `blocked_by`, and never claims a fix the JSON lacks.
+#[test]
+fn nothing_applied_says_why_per_candidate_as_the_json() {
+    let (plant, args) = planted("clean");
+    let dir = tempfile::tempdir().unwrap();
+    let p = |n: &str| dir.path().join(n).display().to_string();
+    let mut checked = 0;
+    for seed in [100u64, 101, 102] {
+        let (train, val) = generate(&plant, seed);
+        train
+            .write_csv(dir.path().join("train.csv").as_path())
+            .unwrap();
+        val.write_csv(dir.path().join("val.csv").as_path()).unwrap();
+        let (tp, vp, mp, rp) = (p("train.csv"), p("val.csv"), p("m.json"), p("r.json"));
+        let mut a = vec!["pbsid", "--train", &tp];
+        a.extend(args.iter());
+        a.extend(["--out", &mp]);
+        lpvid(&a).unwrap();
+        let note = lpvid(&[
+            "diagnose", "--model", &mp, "--train", &tp, "--val", &vp, "--fix", "--json", &rp,
+        ])
+        .unwrap();
+        let json: Value = serde_json::from_str(&std::fs::read_to_string(&rp).unwrap()).unwrap();
+        let applied = json["applied"].as_array().unwrap();
+        if !applied.is_empty() {
+            // a (rare) finding on the clean plant: the note then says Added, never "not applied"
+            assert!(note.contains("Added: "), "{note}");
+            continue;
+        }
+        checked += 1;
+        assert!(!note.contains("Added: "), "{note}");
+        assert!(json["after"].is_null());
+        let stopped = json["stopped"].as_str().unwrap();
+        assert!(note.contains(&format!("Stopped: {stopped}.")), "{note}");
+        let findings = json["steps"][0]["findings"].as_array().unwrap();
+        assert!(!findings.is_empty());
+        for f in findings.iter().take(5) {
+            let effect = f["effect"].as_str().unwrap();
+            let why = f["blocked_by"]
+                .as_str()
+                .unwrap_or_else(|| panic!("{effect}: no blocked_by in {f}"));
+            assert!(!f["significant"].as_bool().unwrap());
+            // one line naming the effect and the rule
+            let line = note
+                .lines()
+                .find(|l| l.trim_start().starts_with(&format!("- {effect} explains")))
+                .unwrap_or_else(|| panic!("no line for {effect} in\n{note}"));
+            assert!(
+                line.ends_with(&format!("not a finding because {why}")),
+                "{line} vs {why}"
+            );
+            // the rule is one of the threshold's, with the JSON's numbers
+            assert!(
+                why.contains("< 10 %")
+                    || why.contains("is not below")
+                    || why.contains("not replicated")
+                    || why.contains("refit failed"),
+                "{why}"
+            );
+            if why.contains("< 10 %") {
+                let e = 100.0 * f["explained"].as_f64().unwrap();
+                assert!(
+                    why.starts_with(&format!("it explains {e:.1} %")),
+                    "{why} vs {e}"
+                );
+            }
+        }
+        // the stop line names the first finding's rule
+        let first = findings[0]["blocked_by"].as_str().unwrap();
+        assert!(stopped.contains(first), "{stopped} vs {first}");
+    }
+    assert!(checked >= 2, "only {checked} clean runs applied nothing");
+}

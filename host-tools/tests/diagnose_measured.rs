@@ -168,3 +168,109 @@ fn silverbox() {
 fn unbalanced_disk() {
     run(&CASES[5]);
 }
+
+/// The acceptance run of issue 14 (periodic disturbances on measured data): the smart rotor
+/// at 370 rpm, rows 0-6999 to train and 7000-9999 to validate (`t` kept, so the phase of a
+/// rotor harmonic carries from one to the other). `periodic-disturbance` is named first, as a
+/// harmonic series of the 1P rotor frequency (370 rpm = 38.746 rad/s) with its harmonics, and
+/// the free-run VAF after --fix reaches 97.5 / 94.5 %.
+#[test]
+fn smart_rotor_370_rotor_harmonics() {
+    let Some(data) = shared_data() else {
+        println!(
+            "SKIPPED: ../shared/data (measured data, see its README) is not next to the checkout"
+        );
+        return;
+    };
+    let (out, _model) = diagnose_rows(&data, "smart-rotor-370rpm.csv", 7000, 10000, 3);
+    let r = &out.report;
+    println!("{}", report::summary(r, &[]));
+    let f = &r.steps[0].findings[0];
+    assert_eq!(f.effect, "periodic-disturbance");
+    assert!(f.significant);
+    // the fundamental and at least its second harmonic
+    assert!(f.detail.contains("its harmonics"), "{}", f.detail);
+    let om: f64 = f
+        .detail
+        .split(" of ")
+        .find_map(|s| s.split(" rad/s").next().and_then(|v| v.trim().parse().ok()))
+        .unwrap_or_else(|| panic!("no rad/s in {}", f.detail));
+    let one_p = 370.0 / 60.0 * 2.0 * std::f64::consts::PI;
+    assert!((om / one_p - 1.0).abs() < 1e-3, "{om} vs 1P {one_p}");
+    assert_eq!(r.applied[0].effect, "periodic-disturbance");
+    let after = r.after.as_ref().unwrap();
+    println!("smart rotor 370: VAF {:?} -> {:?}", r.before.vaf, after.vaf);
+    assert!(
+        after.vaf[0] >= 97.5 && after.vaf[1] >= 94.5,
+        "{:?}",
+        after.vaf
+    );
+}
+
+/// The same split of the 430 rpm record (printed for the spread; its model from the
+/// singular-value gap is far too small, so order-too-low comes first there).
+#[test]
+fn smart_rotor_430_same_split() {
+    let Some(data) = shared_data() else {
+        println!(
+            "SKIPPED: ../shared/data (measured data, see its README) is not next to the checkout"
+        );
+        return;
+    };
+    let (out, _model) = diagnose_rows(&data, "smart-rotor-430rpm.csv", 7000, 10000, 3);
+    let r = &out.report;
+    println!("{}", report::summary(r, &[]));
+    let after = r.after.as_ref().unwrap();
+    println!("smart rotor 430: VAF {:?} -> {:?}", r.before.vaf, after.vaf);
+    assert!(after.vaf_mean > r.before.vaf_mean);
+    // the rotor harmonics are among the effects applied (1P of 430 rpm = 45.03 rad/s)
+    assert!(
+        r.applied.iter().any(|a| a.effect == "periodic-disturbance")
+            || r.steps.iter().any(|s| s
+                .findings
+                .iter()
+                .any(|f| f.effect == "periodic-disturbance")),
+    );
+}
+
+/// `lpvid pbsid --past 10` on rows [0, cut) of `file`, then diagnose --fix with rows
+/// [cut, end) as validation data.
+fn diagnose_rows(
+    dir: &Path,
+    file: &'static str,
+    cut: usize,
+    end: usize,
+    steps: usize,
+) -> (lpvid_host::diagnose::Outcome, ModelFile) {
+    let tmp = tempfile::tempdir().unwrap();
+    let train = segment(dir, (file, 0, cut), "");
+    let val = segment(dir, (file, cut, end), "");
+    let tp = tmp.path().join("train.csv");
+    let vp = tmp.path().join("val.csv");
+    train.write_csv(&tp).unwrap();
+    val.write_csv(&vp).unwrap();
+    let mp = tmp.path().join("model.json");
+    let args: Vec<String> = [
+        "lpvid",
+        "pbsid",
+        "--train",
+        &tp.display().to_string(),
+        "--past",
+        "10",
+        "--out",
+        &mp.display().to_string(),
+    ]
+    .iter()
+    .map(|s| s.to_string())
+    .collect();
+    lpvid_host::cli::run(args, &mut Vec::new()).unwrap();
+    let model = ModelFile::read(&mp).unwrap();
+    let train = Dataset::read_csv(&tp).unwrap();
+    let val = Dataset::read_csv(&vp).unwrap();
+    let opts = Options {
+        fix: true,
+        max_steps: steps,
+        threads: 0,
+    };
+    (diagnose(&model, &train, &val, &opts).unwrap(), model)
+}

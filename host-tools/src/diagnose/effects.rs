@@ -77,7 +77,7 @@ pub enum Effect {
     ColouredNoise,
     /// A logged column explains the residual.
     UnusedSignal,
-    /// c14a hook: the model lacks a dependence on its own output level (diagnose/output.rs).
+    /// the model lacks a dependence on its own output level (diagnose/output.rs).
     OutputNonlinearity,
 }
 
@@ -154,6 +154,9 @@ pub struct Candidate {
     pub detail: String,
     /// The structure to refit.
     pub spec: Spec,
+    /// The structure it is nested in and compared with, when that is not the model's own
+    /// (the BC-IV correction is judged against the same LPV-ARX fit without it).
+    pub null: Option<Spec>,
 }
 
 /// A model evaluated on validation data.
@@ -173,7 +176,7 @@ impl Eval {
     /// Evaluate `model` on `ds`.
     pub fn new(model: &ModelFile, ds: &Dataset) -> Result<Eval, DataError> {
         let sig = model.signals.evaluate(ds)?;
-        // c14a hook: the free run goes through the model's own-output feedback, if any
+        // the free run goes through the model's own-output feedback, if any
         let fb = model.signals.feedback(ds)?;
         let yhat_free = crate::simulate::simulate_feedback(&model.kind, &sig, &fb, Mode::FreeRun);
         let yhat_pred = simulate_signals(&model.kind, &sig, Mode::Predictor);
@@ -299,6 +302,35 @@ fn score_inner(
             }
         }
     };
+    let own_null;
+    let loss0 = match &cand.null {
+        Some(ns) => {
+            match fit_spec(ns, train, base_fit)
+                .map_err(|e| e.to_string())
+                .and_then(|f| Eval::new(&f.model, val).map_err(|e| e.to_string()))
+            {
+                Ok(e) => {
+                    own_null = e.loss(mode);
+                    &own_null[..]
+                }
+                Err(e) => {
+                    return Scored {
+                        cand,
+                        fitted: Some(fitted),
+                        eval: Some(eval),
+                        explained: f64::NEG_INFINITY,
+                        t: 0.0,
+                        p_value: 1.0,
+                        error: Some(format!(
+                            "the structure it is nested in cannot be refit: {e}"
+                        )),
+                        seconds: 0.0,
+                    }
+                }
+            }
+        }
+        None => loss0,
+    };
     let loss1 = eval.loss(mode);
     if loss1.iter().any(|v| !v.is_finite()) {
         return Scored {
@@ -406,17 +438,48 @@ pub fn candidates(ctx: &Context<'_>) -> (Vec<Candidate>, Vec<(Effect, String)>) 
     let mut skipped: Vec<(Effect, String)> = Vec::new();
     let mut push = |effect: Effect, detail: String, spec: Spec| {
         let q = regressors(&spec);
-        if q > MAX_REGRESSORS.max(2 * q_base) {
+        let windows = ctx.train.len().saturating_sub(spec.opts.past);
+        let scheduling_effect = matches!(
+            effect,
+            Effect::ScheduledOutput | Effect::SchedulingNonlinearity
+        );
+        if q > MAX_REGRESSORS.max(2 * q_base)
+            && !(scheduling_effect && windows <= MAX_KERNEL_WINDOWS)
+        {
             skipped.push((
                 effect,
                 format!("{detail}: not tried, its PBSID regression would have {q} regressors"),
             ));
             return;
         }
+        let null = (effect == Effect::SchedulingNoise)
+            .then(|| {
+                spec.arx.as_ref().map(|a| {
+                    let mut n = spec.clone();
+                    n.arx = Some(ArxSpec {
+                        sigma: Some((0.0, vec![])),
+                        ..a.clone()
+                    });
+                    n
+                })
+            })
+            .flatten();
+        let mut spec = spec;
+        if q > MAX_REGRESSORS.max(2 * q_base)
+            && matches!(
+                effect,
+                Effect::ScheduledOutput | Effect::SchedulingNonlinearity
+            )
+        {
+            // a richer scheduling basis is always tried: in the kernel form its cost does not
+            // grow with the regressor length (same regularisation, same windows)
+            spec.opts.solver = crate::pbsid::Solver::Dual;
+        }
         out.push(Candidate {
             effect,
             detail,
             spec,
+            null,
         })
     };
     if spec.arx.is_some() {
@@ -655,53 +718,80 @@ pub fn candidates(ctx: &Context<'_>) -> (Vec<Candidate>, Vec<(Effect, String)>) 
             }
         }
     }
-    // periodic-disturbance: the strongest spectral line of the training residual
+    // periodic-disturbance: the lines of the training residual grouped as a harmonic series
+    // of one fundamental, the frequency refined by least squares (see `periodic_lines`)
     let ts = match (sample_time(ctx.train), sample_time(ctx.val)) {
         (Some(a), Some(b)) if (a - b).abs() <= 1e-6 * a => Some(a),
         _ => None,
     };
-    let mut freqs: Vec<f64> = Vec::new();
-    for j in 0..ctx.train_residual.ncols() {
-        let e: Vec<f64> = ctx.train_residual.column(j).iter().copied().collect();
-        if e.iter().any(|v| !v.is_finite()) {
-            continue;
-        }
-        let sp = super::residual::spectrum(j + 1, &e);
-        let w = sp.top.omega;
-        if w > 0.0 && !freqs.iter().any(|f| (f - w).abs() < 1e-3) {
-            freqs.push(w);
-        }
-    }
-    if freqs.is_empty() {
+    let lines = periodic_lines(ctx.train_residual);
+    if lines.is_empty() {
         na.push((
             Effect::PeriodicDisturbance,
             "no spectral line in the residual".into(),
         ));
     }
-    for w in freqs {
-        let (col, om, unit) = match ts {
-            Some(ts) => ("t", w / ts, "rad/s"),
-            None => ("k", w, "rad/sample"),
-        };
-        let sinf = Factor {
-            omega: Some(om),
-            ..fac(col, 1, 0, Some(FactorFn::Sin))
-        };
-        let cosf = Factor {
-            omega: Some(om),
-            ..fac(col, 1, 0, Some(FactorFn::Cos))
-        };
-        let mut sp = spec.clone();
-        sp.signals.inputs.push(vec![sinf]);
-        sp.signals.inputs.push(vec![cosf]);
-        push(
+    let carried = phase_carried(ctx.train, ctx.val);
+    if !lines.is_empty() && !carried {
+        na.push((
             Effect::PeriodicDisturbance,
             format!(
-                "input channels sin and cos of {om:.6} {unit} x {col} (period {:.2} samples)",
-                2.0 * std::f64::consts::PI / w
+                "the phase of a sinusoid cannot be carried from the training to the validation data ({}): \
+                 the fixed sinusoid is scored as it would be used, and a resonant disturbance model \
+                 (noise states at the line frequencies, judged on the one-step prediction) is tried beside it",
+                if ts.is_none() {
+                    "no common time column t"
+                } else {
+                    "the validation record's t does not continue the training record's"
+                }
             ),
-            sp,
-        );
+        ));
+    }
+    for line in &lines {
+        for h in 1..=line.harmonics {
+            let (col, om, unit) = match ts {
+                Some(ts) => ("t", line.omega / ts, "rad/s"),
+                None => ("k", line.omega, "rad/sample"),
+            };
+            let mut sp = spec.clone();
+            // channels of an earlier series of the same fundamental are replaced (its
+            // frequency is refined again), so that no channel appears twice
+            sp.signals.inputs.retain(|p| match p.as_slice() {
+                [f] if f.col == col && matches!(f.func, Some(FactorFn::Sin | FactorFn::Cos)) => {
+                    let r = f.omega.unwrap_or(1.0) / om;
+                    (r - r.round()).abs() * r.round().max(1.0).sqrt() * line.omega
+                        > 3.0 * 2.0 * std::f64::consts::PI / ctx.train_residual.nrows() as f64
+                        || r.round() < 1.0
+                }
+                _ => true,
+            });
+            for i in 1..=h {
+                for func in [FactorFn::Sin, FactorFn::Cos] {
+                    sp.signals.inputs.push(vec![Factor {
+                        omega: Some(i as f64 * om),
+                        ..fac(col, 1, 0, Some(func))
+                    }]);
+                }
+            }
+            let series = if h == 1 {
+                "the fundamental".to_string()
+            } else {
+                format!("the fundamental and its harmonics 2..{h}")
+            };
+            push(
+                Effect::PeriodicDisturbance,
+                format!(
+                    "input channels sin and cos of {series} (1P..{h}P) of {om:.6} {unit} x {col} (period {:.3} samples; lines seen at {}; frequency by least squares on the training residual)",
+                    2.0 * std::f64::consts::PI / line.omega,
+                    line.seen
+                        .iter()
+                        .map(|k| format!("{k}P"))
+                        .collect::<Vec<_>>()
+                        .join(", ")
+                ),
+                sp,
+            );
+        }
     }
     // order-too-low
     let n = ctx.base.order;
@@ -820,7 +910,7 @@ pub fn candidates(ctx: &Context<'_>) -> (Vec<Candidate>, Vec<(Effect, String)>) 
             "no logged column besides the model's signals".into(),
         ));
     }
-    // c14a hook: output-nonlinearity (diagnose/output.rs)
+    // the output-nonlinearity candidates (diagnose/output.rs)
     let (own, why) = super::output::candidates(ctx);
     for (detail, sp) in own {
         push(Effect::OutputNonlinearity, detail, sp);
@@ -829,6 +919,131 @@ pub fn candidates(ctx: &Context<'_>) -> (Vec<Candidate>, Vec<(Effect, String)>) 
     na.extend(skipped);
     (out, na)
 }
+
+/// A harmonic series found in a residual: fundamental (rad/sample), harmonics to model,
+/// and the harmonic numbers of the significant lines it groups.
+#[derive(Debug, Clone)]
+pub struct Lines {
+    /// Fundamental, rad/sample, refined by least squares over the harmonics.
+    pub omega: f64,
+    /// Harmonics 1..=this are tried (one variant per count).
+    pub harmonics: usize,
+    /// Harmonic numbers of the significant lines of the periodogram it explains.
+    pub seen: Vec<usize>,
+}
+
+/// Most harmonics of one fundamental tried.
+pub const MAX_HARMONICS: usize = 6;
+
+/// The spectral lines of a residual (N x l) grouped as harmonic series (1P, 2P, 3P...).
+/// The strongest significant line (periodogram, [`super::residual::spectrum`]) is the h-th
+/// harmonic of a fundamental for the h in 1..=4 that places the most other significant
+/// lines on integer multiples (within 3 bins; ties: the smaller h); the fundamental is then
+/// refined by least squares on the frequency of the whole series (summed over outputs,
+/// [`super::stats::refine_harmonic`]): a periodogram bin's frequency error of up to pi / N
+/// turns into a phase error of up to pi / 2 across the record, and h-fold at the h-th
+/// harmonic. Without a significant line the strongest local maximum is used alone.
+/// Lines that are not multiples of the first fundamental are grouped the same way once more.
+pub fn periodic_lines(res: &DMatrix<f64>) -> Vec<Lines> {
+    let n = res.nrows();
+    let cols: Vec<Vec<f64>> = (0..res.ncols())
+        .map(|j| res.column(j).iter().copied().collect::<Vec<f64>>())
+        .filter(|e| e.iter().all(|v| v.is_finite()))
+        .collect();
+    if n < 64 || cols.is_empty() {
+        return vec![];
+    }
+    let bin = 2.0 * std::f64::consts::PI / n as f64;
+    let mut peaks: Vec<(f64, f64)> = Vec::new(); // omega, ratio
+    let mut tops: Vec<(f64, f64)> = Vec::new();
+    for (j, e) in cols.iter().enumerate() {
+        let sp = super::residual::spectrum(j + 1, e);
+        peaks.extend(sp.peaks.iter().map(|p| (p.omega, p.ratio)));
+        if sp.top.omega > 0.0 {
+            tops.push((sp.top.omega, sp.top.ratio));
+        }
+    }
+    if peaks.is_empty() {
+        // no significant line: the strongest local maximum, alone
+        peaks = tops
+            .into_iter()
+            .max_by(|a, b| a.1.total_cmp(&b.1))
+            .into_iter()
+            .collect();
+    }
+    peaks.sort_by(|a, b| b.1.total_cmp(&a.1));
+    let mut out: Vec<Lines> = Vec::new();
+    let tol = 3.0 * bin;
+    while let Some(&(ws, _)) = peaks.first() {
+        let on = |f0: f64, w: f64| {
+            let h = (w / f0).round();
+            h >= 1.0 && (w - h * f0).abs() < tol * h.max(1.0).sqrt()
+        };
+        let mut best = (0usize, 1usize);
+        for h in 1..=4usize {
+            let f0 = ws / h as f64;
+            if f0 < 4.0 * bin {
+                break;
+            }
+            let count = peaks.iter().filter(|p| on(f0, p.0)).count();
+            if count > best.0 {
+                best = (count, h);
+            }
+        }
+        let f0 = ws / best.1 as f64;
+        let mut seen: Vec<usize> = peaks
+            .iter()
+            .filter(|p| on(f0, p.0))
+            .map(|p| (p.0 / f0).round() as usize)
+            .collect();
+        seen.sort_unstable();
+        seen.dedup();
+        peaks.retain(|p| !on(f0, p.0));
+        let top_h = seen.last().copied().unwrap_or(1);
+        let nyq = ((std::f64::consts::PI / f0) - 1e-9).floor().max(1.0) as usize;
+        let harmonics = (top_h + 2).min(MAX_HARMONICS).min(nyq).max(1);
+        let fit_h = top_h.min(nyq).max(1);
+        let half = 0.75 * bin / fit_h as f64;
+        let omega = super::stats::refine_harmonic(&cols, f0 - half, f0 + half, fit_h);
+        if out.iter().all(|l| (l.omega - omega).abs() > tol) {
+            out.push(Lines {
+                omega,
+                harmonics: if seen.len() > 1 || best.1 > 1 {
+                    harmonics
+                } else {
+                    1
+                },
+                seen,
+            });
+        }
+        if out.len() >= 2 {
+            break;
+        }
+    }
+    out
+}
+
+/// Whether the phase of a sinusoid of `t` fitted on `train` carries to `val`: both have the
+/// same uniform time column and the validation record starts after the training record's end
+/// (it continues the record on the same clock).
+pub fn phase_carried(train: &Dataset, val: &Dataset) -> bool {
+    match (
+        sample_time(train),
+        sample_time(val),
+        train.column("t"),
+        val.column("t"),
+    ) {
+        (Some(a), Some(b), Some(tt), Some(tv)) if (a - b).abs() <= 1e-6 * a => {
+            tv.first().copied().unwrap_or(f64::NEG_INFINITY)
+                > tt.last().copied().unwrap_or(f64::INFINITY)
+        }
+        _ => false,
+    }
+}
+
+/// Largest number of training windows for which a scheduling variant beyond
+/// [`MAX_REGRESSORS`] is refit in the kernel (dual) form (an N x N kernel).
+pub const MAX_KERNEL_WINDOWS: usize = 4000;
 
 /// Largest PBSID regressor length a variant may have (unless the model's own is larger):
 /// beyond it a refit costs seconds (e.g. p^2 and p^3 with a past window of 5: 2728).
@@ -876,6 +1091,9 @@ pub struct Finding {
     pub variants: usize,
     /// The evidence, in words.
     pub evidence: Vec<String>,
+    /// Why it is not a finding (the rule of the noise threshold that blocked it; None when
+    /// it is above the threshold).
+    pub blocked_by: Option<String>,
 }
 
 /// Evidence for an effect from the residual tests of the model on validation data.
@@ -1002,7 +1220,7 @@ pub fn evidence(
                 // the candidate's line comes from the training residual (choosing it on the
                 // validation data would score it on the data it was chosen with)
                 ev.push(format!(
-                    "the candidate adds the strongest line of the refit's training residual: {}",
+                    "the candidate adds the lines of the refit's training residual, grouped as a harmonic series of one fundamental: {}",
                     b.cand.detail
                 ));
             }
@@ -1035,7 +1253,7 @@ pub fn evidence(
                 }
             }
         }
-        // c14a hook: output-nonlinearity (diagnose/output.rs)
+        // the output-nonlinearity candidates (diagnose/output.rs)
         Effect::OutputNonlinearity => ev.extend(super::output::evidence(best)),
     }
     ev

@@ -9,10 +9,12 @@
 //! squares on the core's Gram), [`residual`] (the tests), [`effects`] (catalogue, scoring,
 //! noise threshold), [`refit`] (the model's own settings, constant channels, scheduled output
 //! equation, noise model, BC-IV path), [`report`] (JSON and the engineer's note), [`plots`]
-//! (SVG).
+//! (SVG), [`plants`] (random plant families with one planted effect, for measuring the
+//! diagnosis).
 
 pub mod effects;
-pub mod output; // c14a: the output-nonlinearity effect
+pub mod output;
+pub mod plants;
 pub mod plots;
 pub mod refit;
 pub mod report;
@@ -360,7 +362,7 @@ pub fn diagnose_with_progress(
             }
         }
         let train_sig = base.model.signals.evaluate(train)?;
-        // c14a hook: through the model's own-output feedback, if any
+        // through the model's own-output feedback, if any
         let train_fb = base.model.signals.feedback(train)?;
         let train_res = &train_sig.y
             - crate::simulate::simulate_feedback(
@@ -503,6 +505,7 @@ pub fn diagnose_with_progress(
                     vaf: s.eval.as_ref().map(mean_vaf),
                     variants,
                     evidence: ev,
+                    blocked_by: None,
                 };
                 (f, i)
             })
@@ -512,14 +515,18 @@ pub fn diagnose_with_progress(
                 .cmp(&a.0.significant)
                 .then(b.0.explained.total_cmp(&a.0.explained))
         });
-        let top = findings.first().filter(|f| f.0.significant).map(|f| f.1);
-        let top_finding = findings.first().map(|f| f.0.clone());
-        // the rule that blocked the best finding, for the stop line (human text and JSON)
-        let blocked_by = findings.first().map(|(f, i)| {
+        // the rule that blocked each finding, for the stop line and the summary (human text
+        // and JSON say the same)
+        for (f, i) in findings.iter_mut() {
+            if f.significant {
+                continue;
+            }
             let j = best.iter().position(|b| b.1 == *i);
             let rep = j.and_then(|j| replication[j].as_ref());
             let p_max = ALPHA / tried.max(1) as f64;
-            if f.explained < effects::MIN_EXPLAINED {
+            f.blocked_by = Some(if let Some(e) = &scored[*i].error {
+                format!("its refit failed ({e})")
+            } else if f.explained < effects::MIN_EXPLAINED {
                 format!(
                     "it explains {:.1} % < {:.0} %",
                     100.0 * f.explained,
@@ -536,8 +543,11 @@ pub fn diagnose_with_progress(
                 )
             } else {
                 "it is below the noise threshold".to_string()
-            }
-        });
+            });
+        }
+        let top = findings.first().filter(|f| f.0.significant).map(|f| f.1);
+        let top_finding = findings.first().map(|f| f.0.clone());
+        let blocked_by = findings.first().and_then(|(f, _)| f.blocked_by.clone());
         let variants_scored = scored
             .iter()
             .map(|s| VariantScore {

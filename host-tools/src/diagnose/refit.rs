@@ -294,7 +294,7 @@ pub fn fit_spec(spec: &Spec, train: &Dataset, base_fit: &Value) -> Result<Fitted
     if let Some(a) = &spec.arx {
         return fit_arx(spec, a, train, base_fit);
     }
-    // c14a hook: a structure that reads the model's own output (diagnose/output.rs)
+    // a structure that reads the model's own output (diagnose/output.rs)
     if spec.signals.has_feedback() {
         return super::output::fit(spec, train, base_fit);
     }

@@ -162,32 +162,44 @@ pub fn summary(r: &Report, plots: &[PathBuf]) -> String {
                 );
             }
         }
-        let skip = usize::from(st.findings.first().is_some_and(|f| f.significant));
+        // one line per candidate that was not applied, with the rule that blocked it (the
+        // same text as the JSON's `blocked_by`)
+        let applied_here = r.applied.iter().any(|a| a.step == st.step);
+        let skip = usize::from(applied_here);
         let others: Vec<String> = st
             .findings
             .iter()
             .skip(skip)
             .take(5)
             .map(|f| {
+                let why = match &f.blocked_by {
+                    Some(b) => format!("not a finding because {b}"),
+                    None if applied_here => {
+                        "above the noise threshold; not applied because one effect is added per step (the best first)".to_string()
+                    }
+                    None => format!("above the noise threshold; not applied because {}", r.stopped),
+                };
                 format!(
-                    "{} {:.1} %{}",
+                    "    - {} explains {:.1} % ({}): {why}",
                     f.effect,
                     100.0 * f.explained,
-                    if f.significant { "" } else { " (n.s.)" }
+                    f.detail
                 )
             })
             .collect();
         if !others.is_empty() {
             let _ = writeln!(
                 s,
-                "  {}: {}.",
+                "  {} (not applied, with the rule that blocked each):",
                 if skip == 1 {
                     "Next candidates"
                 } else {
                     "Best candidates"
-                },
-                others.join(", ")
+                }
             );
+            for o in &others {
+                let _ = writeln!(s, "{o}");
+            }
         }
         for a in r.applied.iter().filter(|a| a.step == st.step) {
             let _ = writeln!(

@@ -4,6 +4,8 @@
 //! model file.
 #![allow(dead_code)]
 
+pub mod family;
+
 use std::f64::consts::PI;
 use std::path::{Path, PathBuf};
 

@@ -1,0 +1,37 @@
+//! The family benchmark of `lpvid diagnose`: random plants per planted effect, the confusion
+//! matrix (how often each effect was named first) and the error ratio after `--fix`.
+//! `cargo run --release -p lpvid-host --example diagnose_family -- [seeds per effect] [N]
+//! [first seed]` (defaults 10, 2000, 1000). The figures are in docs/bench-diagnose.md.
+
+#[path = "../tests/diagnose_support/family.rs"]
+mod family;
+
+use lpvid_host::diagnose::plants::FAMILY_EFFECTS;
+
+fn main() {
+    let args: Vec<String> = std::env::args().collect();
+    let seeds: u64 = args.get(1).and_then(|s| s.parse().ok()).unwrap_or(10);
+    let n: usize = args.get(2).and_then(|s| s.parse().ok()).unwrap_or(2000);
+    let first: u64 = args.get(3).and_then(|s| s.parse().ok()).unwrap_or(1000);
+    let threads = std::thread::available_parallelism().map_or(1, |v| v.get());
+    let seeds: Vec<u64> = (first..first + seeds).collect();
+    let t0 = std::time::Instant::now();
+    let runs = family::run_family(&FAMILY_EFFECTS, &seeds, n, threads);
+    for r in &runs {
+        println!(
+            "{:<24} seed {:>5}: named {:<24} ratio {:>8.2}  ({})",
+            r.planted, r.seed, r.named, r.ratio, r.description
+        );
+    }
+    println!();
+    println!("{}", family::matrix(&runs));
+    let clean: Vec<_> = runs.iter().filter(|r| r.planted == "clean").collect();
+    let alarms = clean.iter().filter(|r| r.named != "none").count();
+    println!(
+        "clean plants with a finding: {alarms} of {} ({:.1} %); {} plants, N = {n}, {:.0} s",
+        clean.len(),
+        100.0 * alarms as f64 / clean.len().max(1) as f64,
+        runs.len(),
+        t0.elapsed().as_secs_f64()
+    );
+}

@@ -1,0 +1,523 @@
+//! Random plant families for measuring `lpvid diagnose` (DESIGN.md section 6): for each effect
+//! of the catalogue (and `output-nonlinearity`, and clean plants) a generator of random
+//! single-input single-output plants with that one effect planted: random order 1-4 with
+//! random stable poles (real or complex pairs, a random similarity transform), with or without
+//! an affine scheduling dependence, random effect strength, white output noise of 1-10 % of
+//! the noise-free output's standard deviation, and one of three input spectra (white,
+//! low-pass, random binary). The records carry `t` (a continuous clock, so the phase of a
+//! periodic disturbance carries from training to validation), `u1`, `y1`, `p1` (scheduled
+//! plants) and `w` (a logged signal, for `unused-signal`). The `lpvid pbsid` settings of each
+//! case are what a user who does not know the effect would choose (for `order-too-low` and
+//! `coloured-noise`: a fixed order that is too small, for `feedthrough`: `--no-feedthrough`).
+
+use std::f64::consts::PI;
+
+use nalgebra::{DMatrix, DVector};
+use rand::rngs::StdRng;
+use rand::{Rng, SeedableRng};
+use rand_distr::{Distribution, StandardNormal};
+
+use crate::data::Dataset;
+
+/// Every planted effect of the family, and `clean` (nothing planted).
+pub const FAMILY_EFFECTS: [&str; 13] = [
+    "clean",
+    "output-offset",
+    "feedthrough",
+    "scheduled-output",
+    "scheduling-nonlinearity",
+    "input-nonlinearity",
+    "input-delay",
+    "scheduling-noise",
+    "periodic-disturbance",
+    "order-too-low",
+    "coloured-noise",
+    "unused-signal",
+    "output-nonlinearity",
+];
+
+/// One random plant with one planted effect, its records and the user's `lpvid pbsid` options.
+#[derive(Debug, Clone)]
+pub struct FamilyCase {
+    /// The planted effect (`clean`: none).
+    pub effect: String,
+    /// Seed it was drawn with.
+    pub seed: u64,
+    /// What was drawn, in words (order, poles, scheduling, strength, noise, input).
+    pub description: String,
+    /// Training record.
+    pub train: Dataset,
+    /// Validation record (continues the training record's clock).
+    pub val: Dataset,
+    /// `lpvid pbsid` options (without --train/--out).
+    pub pbsid_args: Vec<String>,
+}
+
+/// Why a family case cannot be drawn.
+#[derive(Debug, thiserror::Error)]
+pub enum FamilyError {
+    /// The effect is not in [`FAMILY_EFFECTS`].
+    #[error("no plant family for effect {0:?}")]
+    Unknown(String),
+    /// No stable, finite draw in 20 tries.
+    #[error("no stable draw for {0} (seed {1})")]
+    Unstable(String, u64),
+}
+
+fn gauss(rng: &mut StdRng, n: usize) -> Vec<f64> {
+    (0..n).map(|_| StandardNormal.sample(rng)).collect()
+}
+
+fn randn(rng: &mut StdRng, r: usize, c: usize) -> DMatrix<f64> {
+    DMatrix::from_fn(r, c, |_, _| StandardNormal.sample(rng))
+}
+
+fn std_of(v: &[f64]) -> f64 {
+    let n = v.len().max(1) as f64;
+    let mu = v.iter().sum::<f64>() / n;
+    (v.iter().map(|x| (x - mu) * (x - mu)).sum::<f64>() / n).sqrt()
+}
+
+fn radius(a: &DMatrix<f64>) -> f64 {
+    a.complex_eigenvalues()
+        .iter()
+        .map(|z| z.norm())
+        .fold(0.0, f64::max)
+}
+
+/// A random stable A of order n (modal blocks with poles of radius 0.3-0.92, then a random
+/// well-conditioned similarity transform) and the poles in words.
+fn random_a(rng: &mut StdRng, n: usize, rmax: f64) -> (DMatrix<f64>, String) {
+    let mut m = DMatrix::zeros(n, n);
+    let mut words = Vec::new();
+    let mut i = 0;
+    while i < n {
+        if n - i >= 2 && rng.gen_bool(0.5) {
+            let r = rng.gen_range(0.4..rmax);
+            let th: f64 = rng.gen_range(0.15..2.5);
+            let (c, s) = (r * th.cos(), r * th.sin());
+            m[(i, i)] = c;
+            m[(i, i + 1)] = s;
+            m[(i + 1, i)] = -s;
+            m[(i + 1, i + 1)] = c;
+            words.push(format!("{r:.2}e^+-{th:.2}i"));
+            i += 2;
+        } else {
+            let p = rng.gen_range(-0.5..rmax);
+            m[(i, i)] = p;
+            words.push(format!("{p:.2}"));
+            i += 1;
+        }
+    }
+    let t = DMatrix::identity(n, n) + randn(rng, n, n) * 0.3;
+    let a = match t.clone().try_inverse() {
+        Some(ti) => &t * m * ti,
+        None => m,
+    };
+    (a, words.join(", "))
+}
+
+/// Draw the case of `effect` with `seed`: training and validation records of `n` samples each.
+pub fn family_case(effect: &str, seed: u64, n: usize) -> Result<FamilyCase, FamilyError> {
+    if !FAMILY_EFFECTS.contains(&effect) {
+        return Err(FamilyError::Unknown(effect.to_string()));
+    }
+    let mut rng = StdRng::seed_from_u64(seed.wrapping_mul(0x9E37_79B9_7F4A_7C15) ^ 0x5eed);
+    for _ in 0..20 {
+        if let Some(c) = draw(effect, seed, n, &mut rng) {
+            return Ok(c);
+        }
+    }
+    Err(FamilyError::Unstable(effect.to_string(), seed))
+}
+
+fn draw(effect: &str, seed: u64, n: usize, rng: &mut StdRng) -> Option<FamilyCase> {
+    let total = 2 * n;
+    let order = rng.gen_range(1..=4usize);
+    let needs_p = matches!(
+        effect,
+        "scheduled-output" | "scheduling-nonlinearity" | "scheduling-noise"
+    );
+    let scheduled = needs_p || rng.gen_bool(0.5);
+    // poles of a scheduled plant are faster: its past window (and the Kronecker regressor
+    // length 2^p) stays small enough for PBSID
+    let rmax = if scheduled { 0.8 } else { 0.92 };
+    let (a0, poles) = random_a(rng, order, rmax);
+    let b0 = randn(rng, order, 1);
+    let c0 = randn(rng, 1, order);
+    let mut nx = order;
+    let mut a = vec![a0];
+    let mut b = vec![b0.clone()];
+    let mut c = vec![c0.clone()];
+    let mut d0 = 0.0;
+    let mut words = vec![format!("order {order} (poles {poles})")];
+    let strength: f64;
+    // scheduling: A(p) = A0 + p A1, B(p) = B0 + p B1, stable over p in [-1, 1]
+    if scheduled {
+        let mut a1 = randn(rng, order, order) * 0.25;
+        let b1 = randn(rng, order, 1) * 0.5;
+        for _ in 0..10 {
+            let ok = (0..=10).all(|i| {
+                let p = -1.0 + 0.2 * i as f64;
+                radius(&(&a[0] + &a1 * p)) < 0.95
+            });
+            if ok {
+                break;
+            }
+            a1 *= 0.5;
+        }
+        a.push(a1);
+        b.push(b1);
+        words.push("affine in p1".into());
+    }
+    let p_kind = rng.gen_range(0..2u8);
+    let input_kind = rng.gen_range(0..3u8);
+    let noise = rng.gen_range(0.01..0.10);
+    // the user's model: the plant's order and a past window over which the slowest pole
+    // decays to 5 % (a careful user; the family measures the detectors, not the order choice)
+    let slowest = radius(&a[0]).max(0.1);
+    let mut past = ((0.05f64).ln() / slowest.ln()).ceil() as usize;
+    past = past.clamp(3, if scheduled { 7 } else { 15 });
+    let mut args: Vec<String> = vec![];
+    if !matches!(effect, "order-too-low" | "coloured-noise") {
+        args.extend(["--order".to_string(), order.to_string()]);
+    }
+    let mut delay = 0usize;
+    let mut input_nl: Option<(u8, f64)> = None;
+    let mut offset = 0.0;
+    let mut sine: Option<(f64, f64, f64, bool)> = None;
+    let mut coloured: Option<(f64, f64)> = None;
+    let mut sched_noise = 0.0;
+    let mut bw: Option<DMatrix<f64>> = None;
+    let mut out_nl: Option<(u8, f64, DMatrix<f64>)> = None;
+    let mut c1: Option<DMatrix<f64>> = None;
+    match effect {
+        "clean" => strength = 0.0,
+        "output-offset" => {
+            strength = rng.gen_range(0.3..1.0) * if rng.gen_bool(0.5) { 1.0 } else { -1.0 };
+            offset = strength;
+        }
+        "feedthrough" => {
+            strength = rng.gen_range(0.5..1.2);
+            d0 = strength; // times std(y)/std(u), below
+            args.push("--no-feedthrough".into());
+        }
+        "scheduled-output" => {
+            strength = rng.gen_range(0.5..1.0);
+            c1 = Some(&c0 * (strength * if rng.gen_bool(0.5) { 1.0 } else { -1.0 }));
+        }
+        "scheduling-nonlinearity" => {
+            strength = rng.gen_range(0.5..1.0);
+            let mut a2 = DMatrix::identity(order, order) * (-0.3 * strength);
+            for _ in 0..10 {
+                let ok = (0..=10).all(|i| {
+                    let p: f64 = -1.0 + 0.2 * i as f64;
+                    radius(&(&a[0] + &a[1] * p + &a2 * (p * p))) < 0.95
+                });
+                if ok {
+                    break;
+                }
+                a2 *= 0.5;
+            }
+            a.push(a2);
+            b.push(&b0 * (1.5 * strength));
+        }
+        "input-nonlinearity" => {
+            strength = rng.gen_range(0.4..1.0);
+            input_nl = Some((rng.gen_range(0..3u8), strength));
+        }
+        "input-delay" => {
+            delay = rng.gen_range(2..=6usize);
+            strength = delay as f64;
+        }
+        "scheduling-noise" => {
+            strength = rng.gen_range(0.15..0.3);
+            sched_noise = strength;
+        }
+        "periodic-disturbance" => {
+            strength = rng.gen_range(0.3..1.0);
+            let om = rng.gen_range(0.1..2.5);
+            sine = Some((
+                strength,
+                om,
+                rng.gen_range(0.0..2.0 * PI),
+                rng.gen_bool(0.5),
+            ));
+        }
+        "order-too-low" => {
+            // two more states: a resonant mode of gain comparable with the rest
+            let r = rng.gen_range(0.6..0.9);
+            let th: f64 = rng.gen_range(0.3..2.5);
+            let mut aa = DMatrix::zeros(order + 2, order + 2);
+            aa.view_mut((0, 0), (order, order)).copy_from(&a[0]);
+            aa[(order, order)] = r * th.cos();
+            aa[(order, order + 1)] = r * th.sin();
+            aa[(order + 1, order)] = -r * th.sin();
+            aa[(order + 1, order + 1)] = r * th.cos();
+            let grow = |m: &DMatrix<f64>, rows: usize, cols: usize| {
+                let mut g = DMatrix::zeros(rows, cols);
+                g.view_mut((0, 0), (m.nrows(), m.ncols())).copy_from(m);
+                g
+            };
+            let mut na = vec![aa];
+            for ai in &a[1..] {
+                na.push(grow(ai, order + 2, order + 2));
+            }
+            a = na;
+            strength = rng.gen_range(0.7..1.5);
+            let mut bb: Vec<DMatrix<f64>> = b.iter().map(|m| grow(m, order + 2, 1)).collect();
+            bb[0][(order, 0)] = strength;
+            b = bb;
+            let mut cc = grow(&c[0], 1, order + 2);
+            cc[(0, order)] = strength * c0.norm() / (order as f64).sqrt();
+            c = vec![cc];
+            nx = order + 2;
+            args.extend(["--order".to_string(), order.to_string()]);
+            past = past.max(order + 3).min(if scheduled { 7 } else { 15 });
+            words.push(format!("resonant mode {r:.2}e^+-{th:.2}i added"));
+        }
+        "coloured-noise" => {
+            strength = rng.gen_range(0.2..0.5);
+            coloured = Some((rng.gen_range(0.9..0.99), strength));
+            args.extend(["--order".to_string(), order.to_string()]);
+        }
+        "unused-signal" => {
+            strength = rng.gen_range(0.5..1.0);
+            bw = Some(randn(rng, order, 1) * strength);
+        }
+        "output-nonlinearity" => {
+            strength = rng.gen_range(0.3..0.8);
+            let dir = b0.clone() * (strength / b0.norm().max(1e-9));
+            out_nl = Some((rng.gen_range(0..3u8), strength, dir));
+        }
+        _ => return None,
+    }
+    args.splice(0..0, ["--past".to_string(), past.to_string()]);
+    // signals
+    let z = gauss(rng, total);
+    let u: Vec<f64> = match input_kind {
+        0 => z,
+        1 => {
+            let pole = rng.gen_range(0.5..0.8);
+            let mut lp = 0.0;
+            let f: Vec<f64> = z
+                .iter()
+                .map(|v| {
+                    lp = pole * lp + v;
+                    lp
+                })
+                .collect();
+            let s = std_of(&f).max(1e-12);
+            f.iter().map(|v| v / s).collect()
+        }
+        _ => {
+            let mut v = 1.0;
+            let mut hold = 0;
+            (0..total)
+                .map(|_| {
+                    if hold == 0 {
+                        v = if rng.gen_bool(0.5) { 1.0 } else { -1.0 };
+                        hold = rng.gen_range(1..=4);
+                    }
+                    hold -= 1;
+                    v
+                })
+                .collect()
+        }
+    };
+    words.push(
+        ["white input", "low-pass input", "random binary input"][input_kind as usize].to_string(),
+    );
+    let p: Vec<f64> = if !scheduled {
+        vec![0.0; total]
+    } else if p_kind == 1 {
+        let d = gauss(rng, total);
+        (0..total)
+            .map(|k| (0.8 * (0.1 * k as f64).sin() + 0.15 * d[k]).clamp(-1.0, 1.0))
+            .collect()
+    } else {
+        let ph: f64 = rng.gen_range(0.0..2.0 * PI);
+        let per = rng.gen_range(100.0..400.0);
+        let zz = gauss(rng, total);
+        let mut lp = 0.0;
+        let f: Vec<f64> = zz
+            .iter()
+            .map(|v| {
+                lp = 0.98 * lp + 0.02 * v;
+                lp
+            })
+            .collect();
+        let sf = std_of(&f).max(1e-12);
+        (0..total)
+            .map(|k| {
+                (0.7 * (2.0 * PI * k as f64 / per + ph).sin() + 0.25 * f[k] / sf).clamp(-1.0, 1.0)
+            })
+            .collect()
+    };
+    let w: Vec<f64> = {
+        let zz = gauss(rng, total);
+        let mut lp = 0.0;
+        zz.iter()
+            .map(|v| {
+                lp = 0.8 * lp + v;
+                lp
+            })
+            .collect()
+    };
+    let su = std_of(&u).max(1e-12);
+    let input = |k: usize| -> f64 {
+        let uk = if k >= delay { u[k - delay] } else { 0.0 };
+        match input_nl {
+            None => uk,
+            Some((0, s)) => uk + s * uk.abs() * uk / su,
+            Some((1, s)) => uk + s * uk * uk / su,
+            Some((_, s)) => su * (uk / su * (1.0 + 2.0 * s)).tanh() / (1.0 + 2.0 * s) * 2.0,
+        }
+    };
+    let poly = |m: &[DMatrix<f64>], pk: f64| {
+        let mut o = m[0].clone();
+        let mut pw = 1.0;
+        for mm in &m[1..] {
+            pw *= pk;
+            o += mm * pw;
+        }
+        o
+    };
+    // noise-free run (for the scales), then the measured one
+    let run = |d: f64, sy: f64, e: &[f64]| -> Option<Vec<f64>> {
+        let mut x = DVector::zeros(nx);
+        let mut y = vec![0.0; total];
+        let mut yprev = 0.0;
+        for k in 0..total {
+            let v = input(k);
+            let pk = p[k];
+            let mut ck = poly(&c, pk);
+            if let Some(c1) = &c1 {
+                ck += c1 * pk;
+            }
+            let yk = (ck * &x)[0] + d * v;
+            y[k] = yk + e[k];
+            let mut xn = poly(&a, pk) * &x + poly(&b, pk) * v;
+            if let Some(bw) = &bw {
+                xn += bw * w[k];
+            }
+            if let Some((kind, _, dir)) = &out_nl {
+                // the plant's own (noise-free) output level changes its dynamics
+                let s = sy.max(1e-12);
+                let g = match kind {
+                    0 => -(yprev / s).powi(3) * s * 0.3,
+                    1 => ((yprev / s).sin() - yprev / s) * s,
+                    _ => -(yprev / s).abs().sqrt() * (yprev / s).signum() * s * 0.5,
+                };
+                xn += dir * g;
+                yprev = yk;
+            }
+            if !xn.iter().all(|v| v.is_finite() && v.abs() < 1e8) {
+                return None;
+            }
+            x = xn;
+        }
+        Some(y)
+    };
+    let zero = vec![0.0; total];
+    // the output scale without the output nonlinearity's feedback level: a linear run first
+    let y_lin = run(0.0, 1.0, &zero)?;
+    let sy0 = std_of(&y_lin).max(1e-9);
+    let d = d0 * sy0 / su;
+    let y_clean = run(d, sy0, &zero)?;
+    let sy = std_of(&y_clean);
+    if sy.is_nan() || sy <= 1e-9 {
+        return None;
+    }
+    let white: Vec<f64> = gauss(rng, total).iter().map(|v| v * noise * sy).collect();
+    let mut y = run(d, sy0, &white)?;
+    let cz = gauss(rng, total);
+    let mut cn = 0.0;
+    for (k, yk) in y.iter_mut().enumerate() {
+        *yk += offset * sy;
+        if let Some((amp, om, ph, harm)) = sine {
+            *yk += amp * sy * (om * k as f64 + ph).sin();
+            if harm && 2.0 * om < PI {
+                *yk += 0.5 * amp * sy * (2.0 * om * k as f64 + 2.0 * ph + 1.0).sin();
+            }
+        }
+        if let Some((pole, s)) = coloured {
+            cn = pole * cn + cz[k];
+            *yk += s * sy * (1.0 - pole * pole).sqrt() * cn;
+        }
+    }
+    let sp = std_of(&p);
+    let eta = gauss(rng, total);
+    words.push(format!(
+        "{effect} strength {strength:.2}, noise {:.1} %",
+        100.0 * noise
+    ));
+    let split = |lo: usize, hi: usize, noisy: bool| {
+        let mut names = vec!["t".to_string(), "u1".into(), "y1".into()];
+        let mut cols = vec![
+            (lo..hi).map(|k| k as f64 * 0.01).collect::<Vec<_>>(),
+            u[lo..hi].to_vec(),
+            y[lo..hi].to_vec(),
+        ];
+        if scheduled {
+            names.push("p1".into());
+            cols.push(
+                (lo..hi)
+                    .map(|k| {
+                        p[k] + if noisy {
+                            sched_noise * sp * eta[k]
+                        } else {
+                            0.0
+                        }
+                    })
+                    .collect(),
+            );
+        }
+        if bw.is_some() {
+            names.push("w".into());
+            cols.push(w[lo..hi].to_vec());
+        }
+        Dataset {
+            source: format!(
+                "{effect}-{seed}-{}.csv",
+                if lo == 0 { "train" } else { "val" }
+            ),
+            names,
+            cols,
+        }
+    };
+    Some(FamilyCase {
+        effect: effect.to_string(),
+        seed,
+        description: words.join("; "),
+        train: split(0, n, true),
+        val: split(n, total, false),
+        pbsid_args: args,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn every_effect_draws_finite_records() {
+        for e in FAMILY_EFFECTS {
+            for seed in 0..3 {
+                let c = family_case(e, seed, 500).unwrap();
+                assert_eq!(c.train.len(), 500);
+                assert_eq!(c.val.len(), 500);
+                for col in c.train.cols.iter().chain(&c.val.cols) {
+                    assert!(col.iter().all(|v| v.is_finite()), "{e} {seed}");
+                }
+                let y = c.train.column("y1").unwrap();
+                assert!(std_of(y) > 0.0, "{e} {seed}");
+                assert_eq!(
+                    c.train.column("p1").is_some(),
+                    c.description.contains("affine in p1")
+                );
+            }
+        }
+        assert!(family_case("no-such-effect", 0, 10).is_err());
+    }
+}
