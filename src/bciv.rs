@@ -267,6 +267,8 @@ pub struct BcivStats<T, S, W> {
     window: ArxWindow<T, W>,
     data: S,
     count: u64,
+    /// Forgetting factor in (0, 1] (1: plain sums).
+    lambda: T,
 }
 
 impl<T, S, W> BcivStats<T, S, W>
@@ -302,6 +304,7 @@ where
             window,
             data: storage,
             count: 0,
+            lambda: T::ONE,
         };
         st.fill_exponents()?;
         Ok(st)
@@ -411,6 +414,17 @@ where
         self.count = 0;
     }
 
+    /// Exponential forgetting of the statistics from now on: Psi <- lambda Psi + Psi_k per
+    /// accumulated sample, lambda in (0, 1] (1: plain sums). Merging then needs the same
+    /// lambda (see [`crate::stats`] for what a merge of forgetting statistics means).
+    pub fn set_forgetting(&mut self, lambda: T) -> Result<(), Error> {
+        if !(lambda.is_finite() && lambda > T::ZERO && lambda <= T::ONE) {
+            return Err(Error::InvalidConfig("forgetting factor must be in (0, 1]"));
+        }
+        self.lambda = lambda;
+        Ok(())
+    }
+
     /// Start a new experiment: the next regressor needs max(na, nb) + 1 fresh samples.
     pub fn break_window(&mut self) {
         self.window.clear();
@@ -423,7 +437,10 @@ where
         S2: AsRef<[T]> + AsMut<[T]>,
         W2: AsRef<[T]> + AsMut<[T]>,
     {
-        if other.dims != self.dims || other.noise_ratios() != self.noise_ratios() {
+        if other.dims != self.dims
+            || other.noise_ratios() != self.noise_ratios()
+            || other.lambda != self.lambda
+        {
             return Err(Error::Mismatch);
         }
         let sz = self.sz;
@@ -562,6 +579,12 @@ where
         let (stats, cfg) = head.split_at_mut(sz.stats);
         let chi_v = &cfg[sz.chi_buf - sz.stats..sz.chi_buf - sz.stats + sz.chi];
         let zb = &cfg[sz.zbasis - sz.stats..sz.zbasis - sz.stats + sz.nbz];
+        if self.lambda != T::ONE {
+            // Psi <- lambda Psi + Psi_k (statistics and their low parts)
+            for v in stats.iter_mut().chain(comp[..sz.stats].iter_mut()) {
+                *v *= self.lambda;
+            }
+        }
         let (zy, m) = stats.split_at_mut(sz.nz);
         // compensated sums (see `crate::stats`): the low parts, same layout
         let (czy, cm) = comp[..sz.stats].split_at_mut(sz.nz);
@@ -858,6 +881,34 @@ mod tests {
         st.eval_psi(0.01, &mut psi).unwrap();
         assert!(psi.iter().all(|v| v.is_finite()));
         assert!(st.civ_cost(0.01, &[0.1; 6]).unwrap() >= 0.0);
+    }
+
+    #[test]
+    fn forgetting_scales_the_past() {
+        let arx = ArxDims::new(1, 1, 2, 1, 2).unwrap();
+        let d = BcivDims::paper(arx).unwrap();
+        let st =
+            || BcivStats::new(d, vec![0.0f64; d.storage_len()], vec![0.0; d.window_len()]).unwrap();
+        let chi_len = 2 + 2;
+        let sample = |k: usize| {
+            let f = k as f64;
+            let zeta: Vec<f64> = (0..d.nzeta).map(|i| (0.3 * f + i as f64).sin()).collect();
+            let chi: Vec<f64> = (0..chi_len).map(|i| (0.7 * f - i as f64).cos()).collect();
+            (zeta, chi, 0.1 * f - 0.4, [0.2 + 0.05 * f])
+        };
+        let (mut a, mut b, mut fg) = (st(), st(), st());
+        fg.set_forgetting(0.5).unwrap();
+        let (z, c, y, p) = sample(1);
+        a.accumulate(&z, &c, y, &p).unwrap();
+        fg.accumulate(&z, &c, y, &p).unwrap();
+        let (z, c, y, p) = sample(2);
+        b.accumulate(&z, &c, y, &p).unwrap();
+        fg.accumulate(&z, &c, y, &p).unwrap();
+        for ((f, x), y) in fg.values().iter().zip(a.values()).zip(b.values()) {
+            assert!((f - (0.5 * x + y)).abs() < 1e-12);
+        }
+        assert_eq!(a.merge(&fg), Err(Error::Mismatch));
+        assert!(fg.set_forgetting(0.0).is_err());
     }
 
     #[test]

@@ -6,6 +6,40 @@
 //! one second-moment accumulator of the project (the host's least-squares steps use it too).
 //! [`PbsidStats`] feeds it with w_k = [z_k^p; u_{k+p}; y_{k+p}], the statistics from which
 //! problem (13) of the kernel paper (and its regularised forms) is solved without the data.
+//!
+//! ## Long accumulation (issue 18)
+//!
+//! A plain running sum in f32 stops counting: 2^24 + 1 = 2^24, and a sum of 10^7 values of
+//! mean 1 is 1.6 % low. [`Summation::Compensated`] keeps, next to every packed total, its low
+//! part (Kahan: 4 additions instead of 1 per entry, [`kahan_add`]); the total in
+//! [`Gram::packed`] is then the compensated sum rounded to within an ulp, however many samples
+//! went in. Options measured (`host-tools/tests/f32_long_run.rs`, B2-like plant,
+//! r = l = s = 1, p = 2, extended layout, f32 statistics against compensated f64 statistics
+//! of the same f32 samples, largest per-entry relative error):
+//!
+//! | samples | plain f32 | compensated f32 | VAF of the model: f64 / compensated / plain |
+//! |---|---|---|---|
+//! | 10^7 | 1.9e-2 | 6.5e-8 | 94.1216 / 94.1216 / 93.51 |
+//! | 10^8 | see below | | |
+//!
+//! - Blocked summation (a block of B vectors summed plainly, then flushed into the total):
+//!   with a block in registers it is free, and [`Gram::update_batch`] does exactly that (the
+//!   register tile is the block, flushed compensated). A block kept in memory for single
+//!   updates needs a third triangle and makes `packed()` lag the last B - 1 samples (it is
+//!   `&self` and cannot fold them in), so single updates add compensated at once instead.
+//! - Blocked without compensation (two levels) still grows like (B + N/B) eps: at N = 10^9
+//!   no B keeps f32 within 1e-5. Pairwise summation needs log2 N partial triangles.
+//! - Compensated (the choice): storage two packed triangles, [`gram_storage_len`]; cost per
+//!   entry and sample 4 additions and one more load/store (`benches/summation.rs` in the host
+//!   measures it against plain summation, both in one process; docs/bench-device.md has the
+//!   Cortex-M4F count).
+//!
+//! Sizing: a caller that gives [`Gram::new`] `gram_storage_len(dim)` values gets compensated
+//! sums, `packed_len(dim)` plain ones (the old behaviour, bit for bit);
+//! [`Gram::with_summation`] chooses explicitly. The device engine, [`crate::bciv::BcivStats`]
+//! and the kernel dictionary's normal equations always compensate (their storage functions
+//! include the low parts). [`Gram::merge`] adds the other's totals and low parts
+//! compensated.
 
 use core::mem::MaybeUninit;
 use core::ptr::addr_of_mut;
@@ -44,6 +78,10 @@ pub struct Gram<T, S> {
     /// The summation follows the storage (built by [`Gram::new`]): re-chosen by
     /// [`Gram::reset_dim`].
     auto: bool,
+    /// Forgetting factor lambda in (0, 1]: S <- lambda S + w w^T per vector.
+    lambda: T,
+    /// Effective count sum_k lambda^(age of vector k) (= count with lambda = 1).
+    weight: f64,
     _t: core::marker::PhantomData<T>,
 }
 
@@ -112,6 +150,8 @@ impl<T: Real, S: AsRef<[T]> + AsMut<[T]>> Gram<T, S> {
             data: storage,
             summation,
             auto: false,
+            lambda: T::ONE,
+            weight: 0.0,
             _t: core::marker::PhantomData,
         })
     }
@@ -126,6 +166,31 @@ impl<T: Real, S: AsRef<[T]> + AsMut<[T]>> Gram<T, S> {
     /// How this accumulator sums.
     pub fn summation(&self) -> Summation {
         self.summation
+    }
+
+    /// Exponential forgetting from now on: every new vector first scales the accumulated
+    /// matrix (and its low parts) by `lambda`, S <- lambda S + w w^T, so S weights a vector
+    /// of age a by lambda^a (effective memory 1/(1 - lambda) vectors). `lambda` must be in
+    /// (0, 1]; 1 is the plain sum. The statistics so far are kept. The scaling's own
+    /// rounding (eps/2 per vector, decaying with lambda) is not compensated: the relative
+    /// error it leaves is below eps / (2 (1 - lambda)) in the worst case.
+    pub fn set_forgetting(&mut self, lambda: T) -> Result<(), Error> {
+        if !(lambda.is_finite() && lambda > T::ZERO && lambda <= T::ONE) {
+            return Err(Error::InvalidConfig("forgetting factor must be in (0, 1]"));
+        }
+        self.lambda = lambda;
+        Ok(())
+    }
+
+    /// The forgetting factor (1: none).
+    pub fn forgetting(&self) -> T {
+        self.lambda
+    }
+
+    /// Effective number of vectors: sum over the vectors of lambda^age (the weight of the
+    /// constant entry of a statistic vector); equals [`Gram::count`] without forgetting.
+    pub fn weight(&self) -> f64 {
+        self.weight
     }
 
     /// The low parts of the compensated totals (same packing as [`Gram::packed`]; the
@@ -168,10 +233,15 @@ impl<T: Real, S: AsRef<[T]> + AsMut<[T]>> Gram<T, S> {
         self.data.as_ref()[self.row_offset(a) + (b - a)]
     }
 
+    /// What [`Gram::update`] checks: length, finiteness, no overflow in the products.
+    pub(crate) fn check(&self, w: &[T]) -> Result<(), Error> {
+        check_vec(Field::Regressor, w, self.dim)?;
+        check_products(w)
+    }
+
     /// Add w w^T. Rejects a wrong length or a non-finite entry without changing anything.
     pub fn update(&mut self, w: &[T]) -> Result<(), Error> {
-        check_vec(Field::Regressor, w, self.dim)?;
-        check_products(w)?;
+        self.check(w)?;
         self.rank_k(w, 1);
         Ok(())
     }
@@ -222,6 +292,13 @@ impl<T: Real, S: AsRef<[T]> + AsMut<[T]>> Gram<T, S> {
     /// The rank-n update proper (inputs already validated), with tiles that fit the 16
     /// vector registers of SSE2 in f64 and the 32 single registers of a Cortex-M4F.
     fn rank_k(&mut self, rows: &[T], n: usize) {
+        if self.lambda != T::ONE && n > 1 {
+            // every vector is weighted differently: one at a time
+            for w in rows.chunks_exact(self.dim).take(n) {
+                self.rank_k_tiled::<4>(w, 1);
+            }
+            return;
+        }
         self.rank_k_tiled::<4>(rows, n);
     }
 
@@ -233,8 +310,21 @@ impl<T: Real, S: AsRef<[T]> + AsMut<[T]>> Gram<T, S> {
     #[inline(always)]
     fn rank_k_tiled<const CB: usize>(&mut self, rows: &[T], n: usize) {
         let dim = self.dim;
+        if n == 0 {
+            return;
+        }
+        if CB != 4 && self.lambda != T::ONE && n > 1 {
+            // the AVX2 build with forgetting: one vector at a time
+            for w in rows.chunks_exact(dim).take(n) {
+                self.rank_k_tiled::<CB>(w, 1);
+            }
+            return;
+        }
         self.count += n as u64;
-        if dim == 0 || n == 0 {
+        let lambda = self.lambda;
+        // n > 1 only without forgetting (see rank_k)
+        self.weight = self.weight * lambda.to_f64() + n as f64;
+        if dim == 0 {
             return;
         }
         let p = packed_len(dim);
@@ -244,6 +334,39 @@ impl<T: Real, S: AsRef<[T]> + AsMut<[T]>> Gram<T, S> {
         } else {
             (&mut self.data.as_mut()[..p], &mut [])
         };
+        if n == 1 {
+            // one vector (the device's per-sample path): row by row, each entry independent
+            // (vectorises); bit-identical to the tiled code with n = 1
+            let w = &rows[..dim];
+            let mut off = 0;
+            for (i, &wi) in w.iter().enumerate() {
+                let row = off..off + dim - i;
+                if lambda != T::ONE {
+                    if comp {
+                        for ((h, l), x) in hi[row.clone()].iter_mut().zip(&mut lo[row]).zip(&w[i..])
+                        {
+                            *h *= lambda;
+                            *l *= lambda;
+                            kahan_add(h, l, wi * *x);
+                        }
+                    } else {
+                        for (h, x) in hi[row].iter_mut().zip(&w[i..]) {
+                            *h = lambda * *h + wi * *x;
+                        }
+                    }
+                } else if comp {
+                    for ((h, l), x) in hi[row.clone()].iter_mut().zip(&mut lo[row]).zip(&w[i..]) {
+                        kahan_add(h, l, wi * *x);
+                    }
+                } else {
+                    for (h, x) in hi[row].iter_mut().zip(&w[i..]) {
+                        *h += wi * *x;
+                    }
+                }
+                off += dim - i;
+            }
+            return;
+        }
         // the flush of a block sum `v` (the n vectors summed in registers) into entry `idx`
         let mut put = |idx: usize, v: T| {
             if comp {
@@ -339,7 +462,7 @@ impl<T: Real, S: AsRef<[T]> + AsMut<[T]>> Gram<T, S> {
     /// adds the other's totals and low parts with compensation (a plain one adds the
     /// other's total rounded), so merging keeps the accuracy of both.
     pub fn merge<S2: AsRef<[T]> + AsMut<[T]>>(&mut self, other: &Gram<T, S2>) -> Result<(), Error> {
-        if other.dim != self.dim {
+        if other.dim != self.dim || other.lambda != self.lambda {
             return Err(Error::Mismatch);
         }
         let n = packed_len(self.dim);
@@ -365,16 +488,18 @@ impl<T: Real, S: AsRef<[T]> + AsMut<[T]>> Gram<T, S> {
             }
         }
         self.count += other.count;
+        self.weight += other.weight;
         Ok(())
     }
 
-    /// Forget everything accumulated.
+    /// Forget everything accumulated (the forgetting factor is kept).
     pub fn reset(&mut self) {
         let n = Self::storage_needed(self.dim, self.summation);
         for v in self.data.as_mut()[..n].iter_mut() {
             *v = T::ZERO;
         }
         self.count = 0;
+        self.weight = 0.0;
     }
 
     /// Start over for vectors of length `dim` in the same storage (an empty accumulator, as
@@ -418,6 +543,7 @@ impl<T: Real, S: AsRef<[T]> + AsMut<[T]>> Gram<T, S> {
             }
         }
         self.count = count;
+        self.weight = count as f64;
         Ok(())
     }
 
@@ -635,6 +761,12 @@ where
         &mut self.gram
     }
 
+    /// Exponential forgetting of the statistics ([`Gram::set_forgetting`]): lambda in
+    /// (0, 1]. The constant entry of the statistic vector then holds the effective count.
+    pub fn set_forgetting(&mut self, lambda: T) -> Result<(), Error> {
+        self.gram.set_forgetting(lambda)
+    }
+
     /// Feed one sample. Returns `Ok(true)` when a full window produced a vector that was
     /// accumulated. A rejected sample (wrong length, NaN/inf, overflow in the products)
     /// leaves the statistics and the window exactly as they were.
@@ -823,6 +955,8 @@ impl<T: Real, const W: usize, const G: usize, const R: usize> PbsidStatsArrays<T
             addr_of_mut!((*g).count).write(0);
             addr_of_mut!((*g).summation).write(summation);
             addr_of_mut!((*g).auto).write(auto);
+            addr_of_mut!((*g).lambda).write(T::ONE);
+            addr_of_mut!((*g).weight).write(0.0);
             addr_of_mut!((*g)._t).write(core::marker::PhantomData);
             let data = addr_of_mut!((*g).data) as *mut T;
             for i in 0..G {
@@ -1184,5 +1318,78 @@ mod summation_tests {
             Gram::with_summation(dim, vec![0.0f32; packed_len(dim)], Summation::Compensated)
                 .is_err()
         );
+    }
+}
+
+#[cfg(test)]
+mod forgetting_tests {
+    use super::*;
+
+    #[test]
+    fn forgetting_weights_by_age_and_merges_only_alike() {
+        let lambda = 0.9f64;
+        let rows: Vec<[f64; 2]> = (0..50).map(|k| [1.0, (k as f64 * 0.37).sin()]).collect();
+        for storage in [packed_len(2), gram_storage_len(2)] {
+            let mut g = Gram::new(2, vec![0.0; storage]).unwrap();
+            g.set_forgetting(lambda).unwrap();
+            let flat: Vec<f64> = rows.iter().flatten().copied().collect();
+            // a batch is applied vector by vector under forgetting
+            g.update_batch(&flat[..20], 10).unwrap();
+            for r in &rows[10..] {
+                g.update(r).unwrap();
+            }
+            let n = rows.len();
+            let e = |i: usize, j: usize| -> f64 {
+                rows.iter()
+                    .enumerate()
+                    .map(|(k, r)| lambda.powi((n - 1 - k) as i32) * r[i] * r[j])
+                    .sum()
+            };
+            for (i, j) in [(0, 0), (0, 1), (1, 1)] {
+                assert!((g.get(i, j) - e(i, j)).abs() < 1e-12, "{i}{j}");
+            }
+            assert_eq!(g.count(), 50);
+            assert!((g.weight() - e(0, 0)).abs() < 1e-12);
+            // merge: only statistics with the same forgetting factor
+            let plain = Gram::new(2, vec![0.0; storage]).unwrap();
+            assert_eq!(g.merge(&plain), Err(Error::Mismatch));
+            assert!(g.set_forgetting(0.0).is_err());
+            assert!(g.set_forgetting(1.5).is_err());
+            assert!(g.set_forgetting(f64::NAN).is_err());
+            assert_eq!(g.forgetting(), lambda);
+        }
+    }
+}
+
+#[cfg(test)]
+mod sliding_tests {
+    use super::*;
+    use crate::SlidingGram;
+
+    #[test]
+    fn sliding_window_holds_the_last_half_to_full_window() {
+        let n = 8u64;
+        let mut sl = SlidingGram::new(
+            1,
+            n,
+            vec![0.0f64; gram_storage_len(1)],
+            vec![0.0; gram_storage_len(1)],
+        )
+        .unwrap();
+        for k in 1..=37u64 {
+            sl.update(&[k as f64]).unwrap();
+            let c = sl.count();
+            assert!(c <= n && (c == k || c > n / 2), "k {k} count {c}");
+            // the window is the last c vectors: sum of squares of k-c+1..=k
+            let e: f64 = (k + 1 - c..=k).map(|j| (j * j) as f64).sum();
+            assert_eq!(sl.get(0, 0), e);
+        }
+        let before = (sl.count(), sl.get(0, 0));
+        assert!(sl.update(&[f64::NAN]).is_err());
+        assert_eq!((sl.count(), sl.get(0, 0)), before);
+        let mut out = Gram::new(1, vec![0.0; 1]).unwrap();
+        sl.write_total(&mut out).unwrap();
+        assert_eq!(out.get(0, 0), before.1);
+        assert!(SlidingGram::new(1, 1, vec![0.0f64; 1], vec![0.0; 1]).is_err());
     }
 }
