@@ -40,6 +40,19 @@
 //! and the kernel dictionary's normal equations always compensate (their storage functions
 //! include the low parts). [`Gram::merge`] adds the other's totals and low parts
 //! compensated.
+//!
+//! ## Forgetting and windows
+//!
+//! [`Gram::set_forgetting`] (and [`PbsidStats::set_forgetting`],
+//! `BcivStats::set_forgetting`): S <- lambda S + w w^T per vector, lambda in (0, 1], the
+//! effective count in [`Gram::weight`] (and in the constant entry of a statistic vector).
+//! Merging two forgetting statistics adds them as they are, which is only meaningful for
+//! records that ran at the same time (two sensors of one plant, both weighted by the same
+//! clock): [`Gram::merge`] therefore requires equal lambdas (`Error::Mismatch` otherwise)
+//! and does not re-age either side. A record that ended earlier must be aged by the caller
+//! first. [`crate::SlidingGram`] keeps the last N/2 + 1 ..= N vectors with two half-window
+//! Grams taking turns; it is built for a bare Gram (a PbsidStats window over it, and
+//! windows for BcivStats and the dictionary, are not done).
 
 use core::mem::MaybeUninit;
 use core::ptr::addr_of_mut;
