@@ -36,6 +36,7 @@
 use crate::arx::{arx_window_len, basis_len, for_each_monomial, write_basis, ArxDims, ArxWindow};
 use crate::error::{check_vec, Error, Field};
 use crate::real::{first_non_finite, Real};
+use crate::stats::kahan_add;
 
 /// Highest ng + ngz supported (the Hermite coefficients are exact integers in u64 up to 20!).
 pub const MAX_TOTAL_DEGREE: usize = 20;
@@ -72,6 +73,8 @@ struct Sizes {
     ftab: usize,
     powers: usize,
     poly: usize,
+    /// the low parts of the compensated statistics (`stats` values)
+    comp: usize,
     total: usize,
 }
 
@@ -99,7 +102,8 @@ fn sizes(d: &BcivDims) -> Result<Sizes, Error> {
     let ftab = add(zbasis, nbz)?;
     let powers = add(ftab, mul(mul(nbz, nbas)?, npow)?)?;
     let poly = add(powers, mul(a.s, dmax + 1)?)?;
-    let total = add(poly, 2 * npow)?;
+    let comp = add(poly, 2 * npow)?;
+    let total = add(comp, stats)?;
     Ok(Sizes {
         chi,
         nbas,
@@ -117,6 +121,7 @@ fn sizes(d: &BcivDims) -> Result<Sizes, Error> {
         ftab,
         powers,
         poly,
+        comp,
         total,
     })
 }
@@ -188,7 +193,7 @@ pub const fn bciv_storage_len(
     let ntheta = chi * nbas;
     let nz = nzeta * nbz;
     let npow = (ng + ngz) / 2 + 1;
-    nz + npow * nz * ntheta
+    2 * (nz + npow * nz * ntheta)
         + s
         + (nbas + nbz) * s
         + chi
@@ -253,7 +258,8 @@ fn hermite_factor<T: Real>(i: usize, j: usize, rho: T, pw: &[T], out: &mut [T]) 
 ///
 /// Size: `storage_len` + `window_len` values, of which n_z (1 + n_pow n_theta) are the
 /// statistics. B6 with the paper's instruments (n_theta = n_z = 21, 3 powers of sigma^2):
-/// 1 399 + 21 values (1 344 of them statistics), 5.7 KB in f32.
+/// 2 743 + 21 values (1 344 of them statistics, 1 344 their compensation: the sums are
+/// compensated as in [`crate::stats`]), 11 KB in f32.
 #[derive(Debug, Clone)]
 pub struct BcivStats<T, S, W> {
     dims: BcivDims,
@@ -261,6 +267,8 @@ pub struct BcivStats<T, S, W> {
     window: ArxWindow<T, W>,
     data: S,
     count: u64,
+    /// Forgetting factor in (0, 1] (1: plain sums).
+    lambda: T,
 }
 
 impl<T, S, W> BcivStats<T, S, W>
@@ -284,9 +292,8 @@ where
         let s = dims.arx.s;
         {
             let buf = storage.as_mut();
-            for v in buf[..sz.stats].iter_mut() {
-                *v = T::ZERO;
-            }
+            buf[..sz.stats].fill(T::ZERO);
+            buf[sz.comp..sz.comp + sz.stats].fill(T::ZERO);
             for v in buf[sz.ratios..sz.ratios + s].iter_mut() {
                 *v = T::ONE;
             }
@@ -297,6 +304,7 @@ where
             window,
             data: storage,
             count: 0,
+            lambda: T::ONE,
         };
         st.fill_exponents()?;
         Ok(st)
@@ -387,18 +395,34 @@ where
     /// same dimensions and ratios). Checked for length and finiteness first.
     pub fn load(&mut self, values: &[T], count: u64) -> Result<(), Error> {
         check_vec(Field::Regressor, values, self.sz.stats)?;
-        self.data.as_mut()[..self.sz.stats].copy_from_slice(values);
+        let sz = self.sz;
+        let buf = self.data.as_mut();
+        buf[..sz.stats].copy_from_slice(values);
+        for v in buf[sz.comp..sz.comp + sz.stats].iter_mut() {
+            *v = T::ZERO;
+        }
         self.count = count;
         Ok(())
     }
 
     /// Forget the statistics (the window and ratios are kept).
     pub fn reset(&mut self) {
-        let n = self.sz.stats;
-        for v in self.data.as_mut()[..n].iter_mut() {
-            *v = T::ZERO;
-        }
+        let sz = self.sz;
+        let buf = self.data.as_mut();
+        buf[..sz.stats].fill(T::ZERO);
+        buf[sz.comp..sz.comp + sz.stats].fill(T::ZERO);
         self.count = 0;
+    }
+
+    /// Exponential forgetting of the statistics from now on: Psi <- lambda Psi + Psi_k per
+    /// accumulated sample, lambda in (0, 1] (1: plain sums). Merging then needs the same
+    /// lambda (see [`crate::stats`] for what a merge of forgetting statistics means).
+    pub fn set_forgetting(&mut self, lambda: T) -> Result<(), Error> {
+        if !(lambda.is_finite() && lambda > T::ZERO && lambda <= T::ONE) {
+            return Err(Error::InvalidConfig("forgetting factor must be in (0, 1]"));
+        }
+        self.lambda = lambda;
+        Ok(())
     }
 
     /// Start a new experiment: the next regressor needs max(na, nb) + 1 fresh samples.
@@ -413,12 +437,20 @@ where
         S2: AsRef<[T]> + AsMut<[T]>,
         W2: AsRef<[T]> + AsMut<[T]>,
     {
-        if other.dims != self.dims || other.noise_ratios() != self.noise_ratios() {
+        if other.dims != self.dims
+            || other.noise_ratios() != self.noise_ratios()
+            || other.lambda != self.lambda
+        {
             return Err(Error::Mismatch);
         }
-        let n = self.sz.stats;
-        for (a, b) in self.data.as_mut()[..n].iter_mut().zip(other.values()) {
-            *a += *b;
+        let sz = self.sz;
+        let ob = other.data.as_ref();
+        let (ohi, olo) = (&ob[..sz.stats], &ob[sz.comp..sz.comp + sz.stats]);
+        let (hi, rest) = self.data.as_mut().split_at_mut(sz.stats);
+        let lo = &mut rest[sz.comp - sz.stats..sz.comp];
+        for (((h, l), oh), ol) in hi.iter_mut().zip(lo.iter_mut()).zip(ohi).zip(olo) {
+            kahan_add(h, l, *oh);
+            kahan_add(h, l, *ol);
         }
         self.count += other.count;
         Ok(())
@@ -496,7 +528,8 @@ where
         let (head, tail) = buf.split_at_mut(sz.ftab);
         let (ftab, rest) = tail.split_at_mut(sz.powers - sz.ftab);
         let (powers, poly) = rest.split_at_mut(sz.poly - sz.powers);
-        let (acc_poly, factor) = poly[..2 * npow].split_at_mut(npow);
+        let (poly, comp) = poly.split_at_mut(2 * npow);
+        let (acc_poly, factor) = poly.split_at_mut(npow);
         let ratios = &head[sz.ratios..sz.ratios + s];
         let exps_r = &head[sz.exps_r..sz.exps_r + sz.nbas * s];
         let exps_z = &head[sz.exps_z..sz.exps_z + sz.nbz * s];
@@ -546,33 +579,49 @@ where
         let (stats, cfg) = head.split_at_mut(sz.stats);
         let chi_v = &cfg[sz.chi_buf - sz.stats..sz.chi_buf - sz.stats + sz.chi];
         let zb = &cfg[sz.zbasis - sz.stats..sz.zbasis - sz.stats + sz.nbz];
+        if self.lambda != T::ONE {
+            // Psi <- lambda Psi + Psi_k (statistics and their low parts)
+            for v in stats.iter_mut().chain(comp[..sz.stats].iter_mut()) {
+                *v *= self.lambda;
+            }
+        }
         let (zy, m) = stats.split_at_mut(sz.nz);
+        // compensated sums (see `crate::stats`): the low parts, same layout
+        let (czy, cm) = comp[..sz.stats].split_at_mut(sz.nz);
         for (a, za) in zeta.iter().enumerate() {
             let zay = *za * y;
             for (iz, b) in zb.iter().enumerate() {
-                zy[a * sz.nbz + iz] += zay * *b;
+                let k = a * sz.nbz + iz;
+                kahan_add(&mut zy[k], &mut czy[k], zay * *b);
             }
         }
         // M_t += sum over (alpha, iz), (beta, jb): zeta_alpha chi_beta F_t[iz][jb]
         let blk = sz.nz * sz.ntheta;
         for t in 0..npow {
             let mt = &mut m[t * blk..(t + 1) * blk];
+            let ct = &mut cm[t * blk..(t + 1) * blk];
             let ft = &ftab[t * sz.nbz * sz.nbas..(t + 1) * sz.nbz * sz.nbas];
             for (a, za) in zeta.iter().enumerate() {
                 if *za == T::ZERO {
                     continue;
                 }
                 for iz in 0..sz.nbz {
-                    let row =
-                        &mut mt[(a * sz.nbz + iz) * sz.ntheta..(a * sz.nbz + iz + 1) * sz.ntheta];
+                    let span = (a * sz.nbz + iz) * sz.ntheta..(a * sz.nbz + iz + 1) * sz.ntheta;
+                    let row = &mut mt[span.clone()];
+                    let crow = &mut ct[span];
                     let frow = &ft[iz * sz.nbas..(iz + 1) * sz.nbas];
                     for (b, cb) in chi_v.iter().enumerate() {
                         let zc = *za * *cb;
                         if zc == T::ZERO {
                             continue;
                         }
-                        for (dst, f) in row[b * sz.nbas..(b + 1) * sz.nbas].iter_mut().zip(frow) {
-                            *dst += zc * *f;
+                        let cols = b * sz.nbas..(b + 1) * sz.nbas;
+                        for ((dst, lo), f) in row[cols.clone()]
+                            .iter_mut()
+                            .zip(crow[cols].iter_mut())
+                            .zip(frow)
+                        {
+                            kahan_add(dst, lo, zc * *f);
                         }
                     }
                 }
@@ -835,6 +884,34 @@ mod tests {
     }
 
     #[test]
+    fn forgetting_scales_the_past() {
+        let arx = ArxDims::new(1, 1, 2, 1, 2).unwrap();
+        let d = BcivDims::paper(arx).unwrap();
+        let st =
+            || BcivStats::new(d, vec![0.0f64; d.storage_len()], vec![0.0; d.window_len()]).unwrap();
+        let chi_len = 2 + 2;
+        let sample = |k: usize| {
+            let f = k as f64;
+            let zeta: Vec<f64> = (0..d.nzeta).map(|i| (0.3 * f + i as f64).sin()).collect();
+            let chi: Vec<f64> = (0..chi_len).map(|i| (0.7 * f - i as f64).cos()).collect();
+            (zeta, chi, 0.1 * f - 0.4, [0.2 + 0.05 * f])
+        };
+        let (mut a, mut b, mut fg) = (st(), st(), st());
+        fg.set_forgetting(0.5).unwrap();
+        let (z, c, y, p) = sample(1);
+        a.accumulate(&z, &c, y, &p).unwrap();
+        fg.accumulate(&z, &c, y, &p).unwrap();
+        let (z, c, y, p) = sample(2);
+        b.accumulate(&z, &c, y, &p).unwrap();
+        fg.accumulate(&z, &c, y, &p).unwrap();
+        for ((f, x), y) in fg.values().iter().zip(a.values()).zip(b.values()) {
+            assert!((f - (0.5 * x + y)).abs() < 1e-12);
+        }
+        assert_eq!(a.merge(&fg), Err(Error::Mismatch));
+        assert!(fg.set_forgetting(0.0).is_err());
+    }
+
+    #[test]
     fn sizes_are_consistent() {
         let arx = ArxDims::new(1, 1, 4, 2, 2).unwrap();
         let d = BcivDims::paper(arx).unwrap();
@@ -845,7 +922,7 @@ mod tests {
         assert_eq!(d.storage_len(), bciv_storage_len(1, 1, 4, 2, 2, 7, 2));
         assert_eq!(d.window_len(), bciv_window_len(1, 1, 4, 2, 2));
         // the sizes quoted in the documentation of BcivStats
-        assert_eq!(d.storage_len(), 1399);
+        assert_eq!(d.storage_len(), 1399 + 1344);
         assert_eq!(d.window_len(), 21);
         assert!(BcivDims::new(arx, 0, 2).is_err());
         assert!(BcivDims::new(ArxDims::new(1, 1, 1, 0, 15).unwrap(), 2, 15).is_err());

@@ -18,7 +18,8 @@
 //!   counted in [`Status::duplicate_samples`]), and samples that start after it are refused
 //!   with [`ErrorCode::Gap`]: no sample is counted twice or silently lost.
 //! - **Statistics**: a [`PbsidStats`] over static arrays (`W` window, `G` Gram, `R` vector
-//!   values), built at [`Message::Configure`].
+//!   values), built at [`Message::Configure`]; the Gram sums compensated
+//!   ([`Summation::Compensated`], `G` holds two packed triangles: see [`crate::stats`]).
 //! - **Solve**: problem (13), y_{k+p} on [z_k^p; u_{k+p}], from the leading block of the
 //!   statistics by the core's coordinate-descent Lasso ([`crate::lasso`], l1 or l2,1,
 //!   optionally on standardised columns, lambda as a fraction of lambda_max; 0 gives least
@@ -45,7 +46,9 @@ use core::mem::MaybeUninit;
 
 use crate::model::{values_len, ModelDims};
 use crate::real::Real;
-use crate::stats::{packed_len, stat_vector_len, PbsidStats, PbsidStatsArrays, StatsLayout};
+use crate::stats::{
+    packed_len, stat_vector_len, PbsidStats, PbsidStatsArrays, StatsLayout, Summation,
+};
 use crate::window::{window_storage_len, PbsidDims};
 
 /// Largest r + l + s a device accepts (one sample is decoded into a stack array of this
@@ -91,7 +94,7 @@ impl<T: Real, const W: usize, const G: usize, const R: usize> StatsSlot<T, W, G,
     /// (Re)build the statistics for `dims` in place; on error the device is unconfigured.
     fn configure(&mut self, dims: PbsidDims, layout: StatsLayout) -> Result<(), Error> {
         self.ready = false;
-        PbsidStatsArrays::init_in_place(&mut self.val, dims, layout)?;
+        PbsidStatsArrays::init_in_place_with(&mut self.val, dims, layout, Summation::Compensated)?;
         self.ready = true;
         Ok(())
     }
@@ -347,7 +350,9 @@ impl<
             float_bytes: T::BYTES as u8,
             max_frame: u16::try_from(max_raw(F)).unwrap_or(u16::MAX),
             window_cap: c(W),
-            gram_cap: c(G),
+            // packed Gram values a configuration may have (the storage holds twice as many:
+            // the compensated sums' low parts)
+            gram_cap: c(G / 2),
             vector_cap: c(R),
             solver_cap: c(X),
             model_cap: c(M),
@@ -549,12 +554,10 @@ impl<
         if len > R {
             return err(ErrorCode::Capacity, len);
         }
-        let g = len
-            .checked_mul(len + 1)
-            .map(|v| v / 2)
-            .unwrap_or(usize::MAX);
+        // compensated sums: two packed triangles (totals and their low parts)
+        let g = len.saturating_mul(len + 1);
         if g > G {
-            return err(ErrorCode::Capacity, g);
+            return err(ErrorCode::Capacity, g / 2);
         }
         // in place: the Gram is zeroed where it lives, never copied through the stack
         if self.stats.configure(dims, layout).is_err() {
@@ -779,14 +782,14 @@ impl<
 /// up to n = 8, and frames of 512 bytes.
 pub mod sizes {
     use crate::stats::stat_vector_len_const;
-    use crate::{packed_len, window_storage_len};
+    use crate::{gram_storage_len, window_storage_len};
 
     /// Window values (p = 4, r = l = s = 1, and e.g. r = 2, l = 3, s = 3 with p = 1).
     pub const W: usize = 64;
     /// Statistic vector values: the extended layout of r = l = s = 1, p = 4.
     pub const R: usize = stat_vector_len_const(1, 1, 1, 4, true);
-    /// Gram values.
-    pub const G: usize = packed_len(R);
+    /// Gram storage: compensated sums, two packed triangles (8 001 values each).
+    pub const G: usize = gram_storage_len(R);
     /// Solver values: (3 l + 2)(q + r) with l = 1, q + r = 61.
     pub const X: usize = 5 * 61;
     /// Model values: n = 8, r = l = 1, m = 2 with scheduled C, D: 2(64 + 8 + 8) + 2(8 + 1)

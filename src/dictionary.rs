@@ -55,16 +55,16 @@
 //! z_k^p in place of g_k).
 //!
 //! **State size** (values of `T`): window (p + 2)(r + l + s + 1), dictionary
-//! M (p + 1)(r + l + s + 1) + M (M + 1)/2 + M + l, normal equations (M + l)(M + l + 1)/2.
-//! The closed-loop blade example (B5: r = 1, l = 2, s = 1, p = 10) with M = 100: 60 +
-//! 10 652 + 5 253 = 15 965 values, 62 KiB in f32 (the primal Gram of its q = 6 138
+//! M (p + 1)(r + l + s + 1) + M (M + 1)/2 + M + l, normal equations (M + l)(M + l + 1)
+//! (compensated sums: two packed triangles). The closed-loop blade example (B5: r = 1,
+//! l = 2, s = 1, p = 10) with M = 100: 60 + 10 652 + 10 506 = 21 218 values, 83 KiB in f32 (the primal Gram of its q = 6 138
 //! regressors would need 18.9 M values); realization moments with f = 10: dimension
 //! m (f l + r + l) + f l = 66, 2 211 values.
 
 use crate::error::{Error, Field};
 use crate::kernel::{dual_kernel, shifted_kernel};
 use crate::real::{dot, Real};
-use crate::stats::{packed_len, Gram};
+use crate::stats::{gram_storage_len, packed_len, Gram};
 use crate::window::{window_storage_len, PbsidDims, Samples, Slab, Window};
 
 /// Values the dictionary storage needs for `capacity` windows of these dimensions: the
@@ -108,10 +108,11 @@ const fn dictionary_storage_checked(
     }
 }
 
-/// Values the normal-equation storage needs: the packed [`Gram`] of [k; y], dimension
-/// capacity + l. `const` for firmware arrays.
+/// Values the normal-equation storage needs: the [`Gram`] of [k; y], dimension
+/// capacity + l, with compensated sums (two packed triangles, [`gram_storage_len`]: see
+/// [`crate::stats`]). `const` for firmware arrays.
 pub const fn dictionary_gram_len(l: usize, capacity: usize) -> usize {
-    packed_len(capacity + l)
+    gram_storage_len(capacity + l)
 }
 
 /// Length of the realization vector v_k of [`KernelDictionary::write_realization_vector`]
@@ -279,10 +280,8 @@ where
             });
         }
         let gdim = cap.checked_add(dims.l).ok_or(Error::Overflow)?;
-        let gneeded = gdim
-            .checked_mul(gdim + 1)
-            .map(|v| v / 2)
-            .ok_or(Error::Overflow)?;
+        // compensated sums: two packed triangles (dictionary_gram_len)
+        let gneeded = gdim.checked_mul(gdim + 1).ok_or(Error::Overflow)?;
         if gram.as_ref().len() < gneeded {
             return Err(Error::Capacity {
                 needed: gneeded,
@@ -426,7 +425,11 @@ where
             }
         };
         // capacity checked at construction for M = capacity, so this cannot fail
-        let gram = Gram::new(self.len + self.dims.l, storage)?;
+        let gram = Gram::with_summation(
+            self.len + self.dims.l,
+            storage,
+            crate::stats::Summation::Compensated,
+        )?;
         self.normal = Normal::Frozen(gram);
         self.windows = 0;
         Ok(())
@@ -1467,7 +1470,7 @@ mod tests {
         // B5 sizes quoted in the module documentation
         assert_eq!(window_storage_len(1, 2, 1, 10), 60);
         assert_eq!(dictionary_storage_len(1, 2, 1, 10, 100), 10_652);
-        assert_eq!(dictionary_gram_len(2, 100), 5_253);
+        assert_eq!(dictionary_gram_len(2, 100), 10_506);
         assert_eq!(realization_vector_len(1, 2, 1, 10), 66);
         assert_eq!(PbsidDims::new(1, 2, 1, 10).unwrap().q().unwrap(), 6_138);
         // configuration errors

@@ -43,6 +43,7 @@ pub mod model;
 pub mod protocol;
 pub mod real;
 pub mod ring;
+pub mod sliding;
 pub mod stats;
 pub mod streaming;
 pub mod window;
@@ -50,6 +51,10 @@ pub mod window;
 pub use error::{Error, Field};
 pub use model::{ModelDims, ModelView};
 pub use real::Real;
-pub use stats::{packed_len, stat_vector_len, write_stat_vector, Gram, PbsidStats, StatsLayout};
+pub use sliding::SlidingGram;
+pub use stats::{
+    gram_storage_len, packed_len, stat_vector_len, write_stat_vector, Gram, PbsidStats,
+    StatsLayout, Summation,
+};
 pub use streaming::{Merge, Streaming};
 pub use window::{regressor_len, window_storage_len, PbsidDims, Samples, Slab, Window};

@@ -6,6 +6,57 @@
 //! one second-moment accumulator of the project (the host's least-squares steps use it too).
 //! [`PbsidStats`] feeds it with w_k = [z_k^p; u_{k+p}; y_{k+p}], the statistics from which
 //! problem (13) of the kernel paper (and its regularised forms) is solved without the data.
+//!
+//! ## Long accumulation (issue 18)
+//!
+//! A plain running sum in f32 stops counting: 2^24 + 1 = 2^24, and a sum of 10^7 values of
+//! mean 1 is 1.6 % low. [`Summation::Compensated`] keeps, next to every packed total, its low
+//! part (Kahan: 4 additions instead of 1 per entry, [`kahan_add`]); the total in
+//! [`Gram::packed`] is then the compensated sum rounded to within an ulp, however many samples
+//! went in. Options measured (`host-tools/tests/f32_long_run.rs`, B2-like plant,
+//! r = l = s = 1, p = 2, extended layout, f32 statistics against compensated f64 statistics
+//! of the same f32 samples, largest per-entry relative error):
+//!
+//! | samples | plain f32 | compensated f32 | VAF of the model: f64 / compensated / plain |
+//! |---|---|---|---|
+//! | 10^7 | 1.9e-2 | 6.5e-8 | 94.1216 / 94.1216 / 93.51 |
+//! | 10^8 | 0.83 (counts stuck at 2^24) | 5.5e-8 | 94.1218 / 94.1218 / no fit (scheduling looks constant) |
+//!
+//! The test `f32_long_run` runs 10^8 samples (87 s of CPU here, one core; 5 to 10 minutes of
+//! wall time while three other sessions shared the 2 cores); the example `f32_long_run`
+//! runs 10^9 (about 15 minutes of CPU by the same rate; not run in this round).
+//!
+//! - Blocked summation (a block of B vectors summed plainly, then flushed into the total):
+//!   with a block in registers it is free, and [`Gram::update_batch`] does exactly that (the
+//!   register tile is the block, flushed compensated). A block kept in memory for single
+//!   updates needs a third triangle and makes `packed()` lag the last B - 1 samples (it is
+//!   `&self` and cannot fold them in), so single updates add compensated at once instead.
+//! - Blocked without compensation (two levels) still grows like (B + N/B) eps: at N = 10^9
+//!   no B keeps f32 within 1e-5. Pairwise summation needs log2 N partial triangles.
+//! - Compensated (the choice): storage two packed triangles, [`gram_storage_len`]; cost per
+//!   entry and sample 4 additions and one more load/store (`benches/summation.rs` in the host
+//!   measures it against plain summation, both in one process; docs/bench-device.md has the
+//!   Cortex-M4F count).
+//!
+//! Sizing: a caller that gives [`Gram::new`] `gram_storage_len(dim)` values gets compensated
+//! sums, `packed_len(dim)` plain ones (the old behaviour, bit for bit);
+//! [`Gram::with_summation`] chooses explicitly. The device engine, [`crate::bciv::BcivStats`]
+//! and the kernel dictionary's normal equations always compensate (their storage functions
+//! include the low parts). [`Gram::merge`] adds the other's totals and low parts
+//! compensated.
+//!
+//! ## Forgetting and windows
+//!
+//! [`Gram::set_forgetting`] (and [`PbsidStats::set_forgetting`],
+//! `BcivStats::set_forgetting`): S <- lambda S + w w^T per vector, lambda in (0, 1], the
+//! effective count in [`Gram::weight`] (and in the constant entry of a statistic vector).
+//! Merging two forgetting statistics adds them as they are, which is only meaningful for
+//! records that ran at the same time (two sensors of one plant, both weighted by the same
+//! clock): [`Gram::merge`] therefore requires equal lambdas (`Error::Mismatch` otherwise)
+//! and does not re-age either side. A record that ended earlier must be aged by the caller
+//! first. [`crate::SlidingGram`] keeps the last N/2 + 1 ..= N vectors with two half-window
+//! Grams taking turns; it is built for a bare Gram (a PbsidStats window over it, and
+//! windows for BcivStats and the dictionary, are not done).
 
 use core::mem::MaybeUninit;
 use core::ptr::addr_of_mut;
@@ -40,13 +91,66 @@ pub struct Gram<T, S> {
     dim: usize,
     count: u64,
     data: S,
+    summation: Summation,
+    /// The summation follows the storage (built by [`Gram::new`]): re-chosen by
+    /// [`Gram::reset_dim`].
+    auto: bool,
+    /// Forgetting factor lambda in (0, 1]: S <- lambda S + w w^T per vector.
+    lambda: T,
+    /// Effective count sum_k lambda^(age of vector k) (= count with lambda = 1).
+    weight: f64,
     _t: core::marker::PhantomData<T>,
 }
 
+/// How a [`Gram`] adds into its running totals (see the module doc for the measurements).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Summation {
+    /// Plain sequential addition: `packed_len(dim)` values of storage; the relative error
+    /// grows like n eps (f32: 1.6 % low after 10^7 additions of 1).
+    Plain,
+    /// Compensated (Kahan) addition of every flushed block: a second packed triangle holds
+    /// the low parts, `2 packed_len(dim)` values ([`gram_storage_len`]); the error stays a
+    /// few eps whatever the number of samples.
+    Compensated,
+}
+
+/// Storage a compensated [`Gram`] of vectors of length `dim` needs: two packed triangles
+/// (the totals, then their low parts). A [`Gram::new`] over at least this much storage
+/// sums with [`Summation::Compensated`].
+pub const fn gram_storage_len(dim: usize) -> usize {
+    2 * packed_len(dim)
+}
+
+/// One compensated (Kahan) addition of `v` into the pair (`hi`, `lo`), true sum
+/// ~ hi + lo: `hi` stays the correctly rounded total to within an ulp, `lo` the part of
+/// the total that f32/f64 cannot hold in `hi`. 4 additions instead of 1.
+#[inline(always)]
+pub(crate) fn kahan_add<T: Real>(hi: &mut T, lo: &mut T, v: T) {
+    let y = v + *lo;
+    let t = *hi + y;
+    *lo = y - (t - *hi);
+    *hi = t;
+}
+
 impl<T: Real, S: AsRef<[T]> + AsMut<[T]>> Gram<T, S> {
-    /// An empty accumulator for vectors of length `dim` over `storage` (zeroed here).
-    pub fn new(dim: usize, mut storage: S) -> Result<Self, Error> {
-        let needed = packed_len(dim);
+    /// An empty accumulator for vectors of length `dim` over `storage` (zeroed here):
+    /// [`Summation::Compensated`] if the storage holds [`gram_storage_len`] values,
+    /// [`Summation::Plain`] if it holds only `packed_len(dim)`.
+    pub fn new(dim: usize, storage: S) -> Result<Self, Error> {
+        let summation = if storage.as_ref().len() >= gram_storage_len(dim) {
+            Summation::Compensated
+        } else {
+            Summation::Plain
+        };
+        let mut g = Self::with_summation(dim, storage, summation)?;
+        g.auto = true;
+        Ok(g)
+    }
+
+    /// An empty accumulator with an explicit [`Summation`]; fails if `storage` is smaller
+    /// than that summation needs (`packed_len(dim)` or [`gram_storage_len`]).
+    pub fn with_summation(dim: usize, mut storage: S, summation: Summation) -> Result<Self, Error> {
+        let needed = Self::storage_needed(dim, summation);
         let cap = storage.as_ref().len();
         if cap < needed {
             return Err(Error::Capacity {
@@ -61,8 +165,60 @@ impl<T: Real, S: AsRef<[T]> + AsMut<[T]>> Gram<T, S> {
             dim,
             count: 0,
             data: storage,
+            summation,
+            auto: false,
+            lambda: T::ONE,
+            weight: 0.0,
             _t: core::marker::PhantomData,
         })
+    }
+
+    fn storage_needed(dim: usize, summation: Summation) -> usize {
+        match summation {
+            Summation::Plain => packed_len(dim),
+            Summation::Compensated => gram_storage_len(dim),
+        }
+    }
+
+    /// How this accumulator sums.
+    pub fn summation(&self) -> Summation {
+        self.summation
+    }
+
+    /// Exponential forgetting from now on: every new vector first scales the accumulated
+    /// matrix (and its low parts) by `lambda`, S <- lambda S + w w^T, so S weights a vector
+    /// of age a by lambda^a (effective memory 1/(1 - lambda) vectors). `lambda` must be in
+    /// (0, 1]; 1 is the plain sum. The statistics so far are kept. The scaling's own
+    /// rounding (eps/2 per vector, decaying with lambda) is not compensated: the relative
+    /// error it leaves is below eps / (2 (1 - lambda)) in the worst case.
+    pub fn set_forgetting(&mut self, lambda: T) -> Result<(), Error> {
+        if !(lambda.is_finite() && lambda > T::ZERO && lambda <= T::ONE) {
+            return Err(Error::InvalidConfig("forgetting factor must be in (0, 1]"));
+        }
+        self.lambda = lambda;
+        Ok(())
+    }
+
+    /// The forgetting factor (1: none).
+    pub fn forgetting(&self) -> T {
+        self.lambda
+    }
+
+    /// Effective number of vectors: sum over the vectors of lambda^age (the weight of the
+    /// constant entry of a statistic vector); equals [`Gram::count`] without forgetting.
+    pub fn weight(&self) -> f64 {
+        self.weight
+    }
+
+    /// The low parts of the compensated totals (same packing as [`Gram::packed`]; the
+    /// exact-ish total is `packed()[i] + compensation()[i]`), empty for
+    /// [`Summation::Plain`].
+    pub fn compensation(&self) -> &[T] {
+        let n = packed_len(self.dim);
+        match self.summation {
+            Summation::Plain => &[],
+            Summation::Compensated => &self.data.as_ref()[n..2 * n],
+        }
     }
 
     /// Vector length.
@@ -75,7 +231,9 @@ impl<T: Real, S: AsRef<[T]> + AsMut<[T]>> Gram<T, S> {
         self.count
     }
 
-    /// The packed upper triangle (row-major: (0,0), (0,1), ..., (0,d-1), (1,1), ...).
+    /// The packed upper triangle (row-major: (0,0), (0,1), ..., (0,d-1), (1,1), ...). With
+    /// [`Summation::Compensated`] every value is the compensated total rounded to within an
+    /// ulp (the low parts are in [`Gram::compensation`]).
     pub fn packed(&self) -> &[T] {
         &self.data.as_ref()[..packed_len(self.dim)]
     }
@@ -92,10 +250,15 @@ impl<T: Real, S: AsRef<[T]> + AsMut<[T]>> Gram<T, S> {
         self.data.as_ref()[self.row_offset(a) + (b - a)]
     }
 
+    /// What [`Gram::update`] checks: length, finiteness, no overflow in the products.
+    pub(crate) fn check(&self, w: &[T]) -> Result<(), Error> {
+        check_vec(Field::Regressor, w, self.dim)?;
+        check_products(w)
+    }
+
     /// Add w w^T. Rejects a wrong length or a non-finite entry without changing anything.
     pub fn update(&mut self, w: &[T]) -> Result<(), Error> {
-        check_vec(Field::Regressor, w, self.dim)?;
-        check_products(w)?;
+        self.check(w)?;
         self.rank_k(w, 1);
         Ok(())
     }
@@ -146,6 +309,13 @@ impl<T: Real, S: AsRef<[T]> + AsMut<[T]>> Gram<T, S> {
     /// The rank-n update proper (inputs already validated), with tiles that fit the 16
     /// vector registers of SSE2 in f64 and the 32 single registers of a Cortex-M4F.
     fn rank_k(&mut self, rows: &[T], n: usize) {
+        if self.lambda != T::ONE && n > 1 {
+            // every vector is weighted differently: one at a time
+            for w in rows.chunks_exact(self.dim).take(n) {
+                self.rank_k_tiled::<4>(w, 1);
+            }
+            return;
+        }
         self.rank_k_tiled::<4>(rows, n);
     }
 
@@ -157,19 +327,78 @@ impl<T: Real, S: AsRef<[T]> + AsMut<[T]>> Gram<T, S> {
     #[inline(always)]
     fn rank_k_tiled<const CB: usize>(&mut self, rows: &[T], n: usize) {
         let dim = self.dim;
-        self.count += n as u64;
-        if dim == 0 || n == 0 {
+        if n == 0 {
             return;
         }
-        let data = self.data.as_mut();
+        if CB != 4 && self.lambda != T::ONE && n > 1 {
+            // the AVX2 build with forgetting: one vector at a time
+            for w in rows.chunks_exact(dim).take(n) {
+                self.rank_k_tiled::<CB>(w, 1);
+            }
+            return;
+        }
+        self.count += n as u64;
+        let lambda = self.lambda;
+        // n > 1 only without forgetting (see rank_k)
+        self.weight = self.weight * lambda.to_f64() + n as f64;
+        if dim == 0 {
+            return;
+        }
+        let p = packed_len(dim);
+        let comp = self.summation == Summation::Compensated;
+        let (hi, lo): (&mut [T], &mut [T]) = if comp {
+            self.data.as_mut()[..2 * p].split_at_mut(p)
+        } else {
+            (&mut self.data.as_mut()[..p], &mut [])
+        };
+        if n == 1 {
+            // one vector (the device's per-sample path): row by row, each entry independent
+            // (vectorises); bit-identical to the tiled code with n = 1
+            let w = &rows[..dim];
+            let mut off = 0;
+            for (i, &wi) in w.iter().enumerate() {
+                let row = off..off + dim - i;
+                if lambda != T::ONE {
+                    if comp {
+                        for ((h, l), x) in hi[row.clone()].iter_mut().zip(&mut lo[row]).zip(&w[i..])
+                        {
+                            *h *= lambda;
+                            *l *= lambda;
+                            kahan_add(h, l, wi * *x);
+                        }
+                    } else {
+                        for (h, x) in hi[row].iter_mut().zip(&w[i..]) {
+                            *h = lambda * *h + wi * *x;
+                        }
+                    }
+                } else if comp {
+                    for ((h, l), x) in hi[row.clone()].iter_mut().zip(&mut lo[row]).zip(&w[i..]) {
+                        kahan_add(h, l, wi * *x);
+                    }
+                } else {
+                    for (h, x) in hi[row].iter_mut().zip(&w[i..]) {
+                        *h += wi * *x;
+                    }
+                }
+                off += dim - i;
+            }
+            return;
+        }
+        // the flush of a block sum `v` (the n vectors summed in registers) into entry `idx`
+        let mut put = |idx: usize, v: T| {
+            if comp {
+                kahan_add(&mut hi[idx], &mut lo[idx], v);
+            } else {
+                hi[idx] += v;
+            }
+        };
         let vectors = || rows.chunks_exact(dim).take(n);
         let mut off = 0;
         let mut i = 0;
         while i + 4 <= dim {
-            let (r0, rest) = data[off..].split_at_mut(dim - i);
-            let (r1, rest) = rest.split_at_mut(dim - i - 1);
-            let (r2, rest) = rest.split_at_mut(dim - i - 2);
-            let r3 = &mut rest[..dim - i - 3];
+            let o1 = off + dim - i;
+            let o2 = o1 + dim - i - 1;
+            let o3 = o2 + dim - i - 2;
             // the head: columns i..i+2 of rows i..i+2 (column i+3 is in the tiles)
             let mut h = [T::ZERO; 6];
             for w in vectors() {
@@ -181,14 +410,11 @@ impl<T: Real, S: AsRef<[T]> + AsMut<[T]>> Gram<T, S> {
                 h[4] += a1 * a2;
                 h[5] += a2 * a2;
             }
-            r0[0] += h[0];
-            r0[1] += h[1];
-            r0[2] += h[2];
-            r1[0] += h[3];
-            r1[1] += h[4];
-            r2[0] += h[5];
-            // columns i+3.. of the four rows, aligned
-            let mut c = [&mut r0[3..], &mut r1[2..], &mut r2[1..], r3];
+            for (idx, v) in [off, off + 1, off + 2, o1, o1 + 1, o2].into_iter().zip(h) {
+                put(idx, v);
+            }
+            // columns i+3.. of the four rows, aligned: where column i+3 starts in each row
+            let base = [off + 3, o1 + 2, o2 + 1, o3];
             let len = dim - i - 3;
             let mut j = 0;
             while j + CB <= len {
@@ -202,9 +428,9 @@ impl<T: Real, S: AsRef<[T]> + AsMut<[T]>> Gram<T, S> {
                         }
                     }
                 }
-                for (cr, row) in c.iter_mut().zip(&acc) {
-                    for (dst, &v) in cr[j..j + CB].iter_mut().zip(row) {
-                        *dst += v;
+                for (b, row) in base.iter().zip(&acc) {
+                    for (t, &v) in row.iter().enumerate() {
+                        put(b + j + t, v);
                     }
                 }
                 j += CB;
@@ -217,19 +443,30 @@ impl<T: Real, S: AsRef<[T]> + AsMut<[T]>> Gram<T, S> {
                         *s += ar * xv;
                     }
                 }
-                for (cr, &v) in c.iter_mut().zip(&acc) {
-                    cr[jj] += v;
+                for (b, &v) in base.iter().zip(&acc) {
+                    put(b + jj, v);
                 }
             }
             off += 4 * (dim - i) - 6;
             i += 4;
         }
         while i < dim {
-            let row = &mut data[off..off + dim - i];
-            for w in vectors() {
-                let wi = w[i];
-                for (acc, x) in row.iter_mut().zip(&w[i..]) {
-                    *acc += wi * *x;
+            if n == 1 || !comp {
+                // one vector (or plain sums): add straight into the totals
+                for w in vectors() {
+                    let wi = w[i];
+                    for (t, x) in w[i..].iter().enumerate() {
+                        put(off + t, wi * *x);
+                    }
+                }
+            } else {
+                // a block of vectors: sum each entry over the block, then one compensated add
+                for t in 0..dim - i {
+                    let mut v = T::ZERO;
+                    for w in vectors() {
+                        v += w[i] * w[i + t];
+                    }
+                    put(off + t, v);
                 }
             }
             off += dim - i;
@@ -238,34 +475,66 @@ impl<T: Real, S: AsRef<[T]> + AsMut<[T]>> Gram<T, S> {
     }
 
     /// Add another accumulator of the same dimension: the result equals accumulating the
-    /// concatenated data (how experiments or devices combine).
+    /// concatenated data (how experiments or devices combine). A compensated accumulator
+    /// adds the other's totals and low parts with compensation (a plain one adds the
+    /// other's total rounded), so merging keeps the accuracy of both.
     pub fn merge<S2: AsRef<[T]> + AsMut<[T]>>(&mut self, other: &Gram<T, S2>) -> Result<(), Error> {
-        if other.dim != self.dim {
+        if other.dim != self.dim || other.lambda != self.lambda {
             return Err(Error::Mismatch);
         }
         let n = packed_len(self.dim);
-        for (a, b) in self.data.as_mut()[..n].iter_mut().zip(other.packed()) {
-            *a += *b;
+        let olo = other.compensation();
+        let ohi = other.packed();
+        match self.summation {
+            Summation::Plain => {
+                for (k, a) in self.data.as_mut()[..n].iter_mut().enumerate() {
+                    *a += match olo.get(k) {
+                        Some(l) => ohi[k] + *l,
+                        None => ohi[k],
+                    };
+                }
+            }
+            Summation::Compensated => {
+                let (hi, lo) = self.data.as_mut()[..2 * n].split_at_mut(n);
+                for k in 0..n {
+                    kahan_add(&mut hi[k], &mut lo[k], ohi[k]);
+                    if let Some(l) = olo.get(k) {
+                        kahan_add(&mut hi[k], &mut lo[k], *l);
+                    }
+                }
+            }
         }
         self.count += other.count;
+        self.weight += other.weight;
         Ok(())
     }
 
-    /// Forget everything accumulated.
+    /// Forget everything accumulated (the forgetting factor is kept).
     pub fn reset(&mut self) {
-        let n = packed_len(self.dim);
+        let n = Self::storage_needed(self.dim, self.summation);
         for v in self.data.as_mut()[..n].iter_mut() {
             *v = T::ZERO;
         }
         self.count = 0;
+        self.weight = 0.0;
     }
 
     /// Start over for vectors of length `dim` in the same storage (an empty accumulator, as
-    /// [`Gram::new`] would give, without moving the storage). Fails, changing nothing, if
-    /// the storage is too small.
+    /// [`Gram::new`] would give, without moving the storage). The summation is chosen again
+    /// from the storage if the accumulator came from [`Gram::new`], kept otherwise. Fails,
+    /// changing nothing, if the storage is too small.
     pub fn reset_dim(&mut self, dim: usize) -> Result<(), Error> {
-        let needed = packed_len(dim);
         let cap = self.data.as_ref().len();
+        let summation = if self.auto {
+            if cap >= gram_storage_len(dim) {
+                Summation::Compensated
+            } else {
+                Summation::Plain
+            }
+        } else {
+            self.summation
+        };
+        let needed = Self::storage_needed(dim, summation);
         if cap < needed {
             return Err(Error::Capacity {
                 needed,
@@ -273,6 +542,7 @@ impl<T: Real, S: AsRef<[T]> + AsMut<[T]>> Gram<T, S> {
             });
         }
         self.dim = dim;
+        self.summation = summation;
         self.reset();
         Ok(())
     }
@@ -281,8 +551,16 @@ impl<T: Real, S: AsRef<[T]> + AsMut<[T]>> Gram<T, S> {
     /// `packed_len(dim)` finite values.
     pub fn load(&mut self, packed: &[T], count: u64) -> Result<(), Error> {
         check_vec(Field::Regressor, packed, packed_len(self.dim))?;
-        self.data.as_mut()[..packed.len()].copy_from_slice(packed);
+        let n = packed.len();
+        let data = self.data.as_mut();
+        data[..n].copy_from_slice(packed);
+        if self.summation == Summation::Compensated {
+            for v in data[n..2 * n].iter_mut() {
+                *v = T::ZERO;
+            }
+        }
         self.count = count;
+        self.weight = count as f64;
         Ok(())
     }
 
@@ -445,7 +723,8 @@ where
     /// Configure again for `dims` and `layout` in place: the Gram and scratch storage stay
     /// where they are (no copy of the Gram through the stack, unlike building a new value
     /// with [`PbsidStats::with_storage`]); only the window gets the new storage `window`
-    /// (small: `window_storage_len` values). The statistics start empty. Fails, changing
+    /// (small: `window_storage_len` values). The statistics start empty (summation as in
+    /// [`Gram::reset_dim`]). Fails, changing
     /// nothing, if a storage is too small.
     pub fn reconfigure(
         &mut self,
@@ -460,8 +739,12 @@ where
                 capacity: self.scratch.as_ref().len(),
             });
         }
-        let needed = packed_len(len);
         let cap = self.gram.data.as_ref().len();
+        let needed = if self.gram.auto {
+            packed_len(len)
+        } else {
+            Gram::<T, SG>::storage_needed(len, self.gram.summation)
+        };
         if cap < needed {
             return Err(Error::Capacity {
                 needed,
@@ -493,6 +776,12 @@ where
     /// Mutable access (merging statistics from another source).
     pub fn gram_mut(&mut self) -> &mut Gram<T, SG> {
         &mut self.gram
+    }
+
+    /// Exponential forgetting of the statistics ([`Gram::set_forgetting`]): lambda in
+    /// (0, 1]. The constant entry of the statistic vector then holds the effective count.
+    pub fn set_forgetting(&mut self, lambda: T) -> Result<(), Error> {
+        self.gram.set_forgetting(lambda)
     }
 
     /// Feed one sample. Returns `Ok(true)` when a full window produced a vector that was
@@ -628,12 +917,33 @@ impl<T: Real, const W: usize, const G: usize, const R: usize> PbsidStatsArrays<T
     /// [`PbsidStatsArrays::new`] returns the arrays by value. Only the window (`W` values)
     /// is built on the stack. `slot` may already hold statistics: they are overwritten (the
     /// type has no destructor). On error (a capacity too small, bad dimensions) `slot` is
-    /// left untouched.
+    /// left untouched. The Gram sums [`Summation::Compensated`] when `G` holds
+    /// [`gram_storage_len`] values for this configuration, else plainly (as [`Gram::new`]).
     pub fn init_in_place(
         slot: &mut MaybeUninit<Self>,
         dims: PbsidDims,
         layout: StatsLayout,
     ) -> Result<&mut Self, Error> {
+        let len = stat_vector_len(&dims, layout)?;
+        let summation = if G >= gram_storage_len(len) {
+            Summation::Compensated
+        } else {
+            Summation::Plain
+        };
+        let st = Self::init_in_place_with(slot, dims, layout, summation)?;
+        st.gram.auto = true;
+        Ok(st)
+    }
+
+    /// [`PbsidStatsArrays::init_in_place`] with an explicit [`Summation`] (fails if `G` is
+    /// smaller than it needs).
+    pub fn init_in_place_with(
+        slot: &mut MaybeUninit<Self>,
+        dims: PbsidDims,
+        layout: StatsLayout,
+        summation: Summation,
+    ) -> Result<&mut Self, Error> {
+        let auto = false;
         let len = stat_vector_len(&dims, layout)?;
         if R < len {
             return Err(Error::Capacity {
@@ -641,9 +951,10 @@ impl<T: Real, const W: usize, const G: usize, const R: usize> PbsidStatsArrays<T
                 capacity: R,
             });
         }
-        if G < packed_len(len) {
+        let needed = Gram::<T, [T; G]>::storage_needed(len, summation);
+        if G < needed {
             return Err(Error::Capacity {
-                needed: packed_len(len),
+                needed,
                 capacity: G,
             });
         }
@@ -659,6 +970,10 @@ impl<T: Real, const W: usize, const G: usize, const R: usize> PbsidStatsArrays<T
             let g = addr_of_mut!((*p).gram);
             addr_of_mut!((*g).dim).write(len);
             addr_of_mut!((*g).count).write(0);
+            addr_of_mut!((*g).summation).write(summation);
+            addr_of_mut!((*g).auto).write(auto);
+            addr_of_mut!((*g).lambda).write(T::ONE);
+            addr_of_mut!((*g).weight).write(0.0);
             addr_of_mut!((*g)._t).write(core::marker::PhantomData);
             let data = addr_of_mut!((*g).data) as *mut T;
             for i in 0..G {
@@ -924,5 +1239,174 @@ mod tests {
             let (i, j) = (t / l2, t % l2);
             assert!((zt - ve[i * d + b2 + j]).abs() < 1e-15);
         }
+    }
+}
+
+#[cfg(test)]
+mod summation_tests {
+    use super::*;
+
+    /// A deterministic pseudo-random stream in [-1, 1) (xorshift), for sums with mixed signs.
+    fn stream(seed: u64) -> impl FnMut() -> f64 {
+        let mut x = seed | 1;
+        move || {
+            x ^= x << 13;
+            x ^= x >> 7;
+            x ^= x << 17;
+            (x >> 11) as f64 / (1u64 << 52) as f64 - 1.0
+        }
+    }
+
+    #[test]
+    fn compensated_f32_counts_past_2_pow_24() {
+        // 2^24 + 10^6 additions of 1: plain f32 stops at 2^24, compensated counts on
+        let n = (1u64 << 24) + 1_000_000;
+        let mut plain = Gram::new(1, [0.0f32; 1]).unwrap();
+        let mut comp = Gram::new(1, [0.0f32; 2]).unwrap();
+        assert_eq!(plain.summation(), Summation::Plain);
+        assert_eq!(comp.summation(), Summation::Compensated);
+        for _ in 0..n {
+            plain.update(&[1.0]).unwrap();
+            comp.update(&[1.0]).unwrap();
+        }
+        assert_eq!(plain.get(0, 0), 16_777_216.0);
+        assert_eq!(
+            comp.get(0, 0) as f64 + comp.compensation()[0] as f64,
+            n as f64
+        );
+        assert!((comp.get(0, 0) as f64 - n as f64).abs() <= 2.0);
+    }
+
+    #[test]
+    fn compensated_single_batch_and_merge_agree_with_f64() {
+        let dim = 7;
+        let mut next = stream(7);
+        let n = 20_000;
+        let rows: Vec<f32> = (0..n * dim).map(|_| (next() + 0.3) as f32).collect();
+        let mut exact = vec![0.0f64; packed_len(dim)];
+        let mut single = Gram::new(dim, vec![0.0f32; gram_storage_len(dim)]).unwrap();
+        let mut batch = Gram::new(dim, vec![0.0f32; gram_storage_len(dim)]).unwrap();
+        let mut a = Gram::new(dim, vec![0.0f32; gram_storage_len(dim)]).unwrap();
+        let mut b = Gram::new(dim, vec![0.0f32; gram_storage_len(dim)]).unwrap();
+        let mut plain = Gram::new(dim, vec![0.0f32; packed_len(dim)]).unwrap();
+        for (k, w) in rows.chunks_exact(dim).enumerate() {
+            single.update(w).unwrap();
+            plain.update(w).unwrap();
+            if k < n / 3 {
+                a.update(w).unwrap();
+            } else {
+                b.update(w).unwrap();
+            }
+            let mut off = 0;
+            for i in 0..dim {
+                for j in i..dim {
+                    // f32 x f32 is exact in f64
+                    exact[off + j - i] += w[i] as f64 * w[j] as f64;
+                }
+                off += dim - i;
+            }
+        }
+        for chunk in rows.chunks(dim * 64) {
+            batch.update_batch(chunk, chunk.len() / dim).unwrap();
+        }
+        a.merge(&b).unwrap();
+        assert_eq!(a.count(), n as u64);
+        let scale = exact.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+        let worst = |g: &Gram<f32, Vec<f32>>| {
+            g.packed()
+                .iter()
+                .zip(&exact)
+                .map(|(x, e)| (*x as f64 - e).abs() / scale)
+                .fold(0.0, f64::max)
+        };
+        // within a couple of f32 ulps of the largest entry
+        for g in [&single, &batch, &a] {
+            assert!(worst(g) < 2.0 * f32::EPSILON as f64, "{}", worst(g));
+        }
+        // plain summation is measurably worse on the same data
+        assert!(worst(&plain) > 10.0 * worst(&single));
+        // load keeps the summation and clears the low parts
+        let mut l = Gram::new(dim, vec![0.0f32; gram_storage_len(dim)]).unwrap();
+        l.load(single.packed(), 3).unwrap();
+        assert!(l.compensation().iter().all(|v| *v == 0.0));
+        assert_eq!(l.packed(), single.packed());
+        // explicit summation needs its storage
+        assert!(
+            Gram::with_summation(dim, vec![0.0f32; packed_len(dim)], Summation::Compensated)
+                .is_err()
+        );
+    }
+}
+
+#[cfg(test)]
+mod forgetting_tests {
+    use super::*;
+
+    #[test]
+    fn forgetting_weights_by_age_and_merges_only_alike() {
+        let lambda = 0.9f64;
+        let rows: Vec<[f64; 2]> = (0..50).map(|k| [1.0, (k as f64 * 0.37).sin()]).collect();
+        for storage in [packed_len(2), gram_storage_len(2)] {
+            let mut g = Gram::new(2, vec![0.0; storage]).unwrap();
+            g.set_forgetting(lambda).unwrap();
+            let flat: Vec<f64> = rows.iter().flatten().copied().collect();
+            // a batch is applied vector by vector under forgetting
+            g.update_batch(&flat[..20], 10).unwrap();
+            for r in &rows[10..] {
+                g.update(r).unwrap();
+            }
+            let n = rows.len();
+            let e = |i: usize, j: usize| -> f64 {
+                rows.iter()
+                    .enumerate()
+                    .map(|(k, r)| lambda.powi((n - 1 - k) as i32) * r[i] * r[j])
+                    .sum()
+            };
+            for (i, j) in [(0, 0), (0, 1), (1, 1)] {
+                assert!((g.get(i, j) - e(i, j)).abs() < 1e-12, "{i}{j}");
+            }
+            assert_eq!(g.count(), 50);
+            assert!((g.weight() - e(0, 0)).abs() < 1e-12);
+            // merge: only statistics with the same forgetting factor
+            let plain = Gram::new(2, vec![0.0; storage]).unwrap();
+            assert_eq!(g.merge(&plain), Err(Error::Mismatch));
+            assert!(g.set_forgetting(0.0).is_err());
+            assert!(g.set_forgetting(1.5).is_err());
+            assert!(g.set_forgetting(f64::NAN).is_err());
+            assert_eq!(g.forgetting(), lambda);
+        }
+    }
+}
+
+#[cfg(test)]
+mod sliding_tests {
+    use super::*;
+    use crate::SlidingGram;
+
+    #[test]
+    fn sliding_window_holds_the_last_half_to_full_window() {
+        let n = 8u64;
+        let mut sl = SlidingGram::new(
+            1,
+            n,
+            vec![0.0f64; gram_storage_len(1)],
+            vec![0.0; gram_storage_len(1)],
+        )
+        .unwrap();
+        for k in 1..=37u64 {
+            sl.update(&[k as f64]).unwrap();
+            let c = sl.count();
+            assert!(c <= n && (c == k || c > n / 2), "k {k} count {c}");
+            // the window is the last c vectors: sum of squares of k-c+1..=k
+            let e: f64 = (k + 1 - c..=k).map(|j| (j * j) as f64).sum();
+            assert_eq!(sl.get(0, 0), e);
+        }
+        let before = (sl.count(), sl.get(0, 0));
+        assert!(sl.update(&[f64::NAN]).is_err());
+        assert_eq!((sl.count(), sl.get(0, 0)), before);
+        let mut out = Gram::new(1, vec![0.0; 1]).unwrap();
+        sl.write_total(&mut out).unwrap();
+        assert_eq!(out.get(0, 0), before.1);
+        assert!(SlidingGram::new(1, 1, vec![0.0f64; 1], vec![0.0; 1]).is_err());
     }
 }

@@ -9,7 +9,7 @@
 //! next step.
 //!
 //! Capacities ([`lpvid::device::sizes`]): r = l = s = 1 up to p = 4 with the extended
-//! layout (8 001 Gram values), any configuration whose statistics fit as much (e.g.
+//! layout (8 001 Gram values, stored twice: compensated sums), any configuration whose statistics fit as much (e.g.
 //! r = 2, l = 3, s = 3, p = 1), on-device solves up to 61 columns, models up to n = 8.
 //!
 //! Memory: the engine lives in the static `ENGINE` (.bss); a configuration builds the

@@ -52,7 +52,8 @@ pub fn host_stats<T: lpvid::Real>(
         dims,
         layout,
         vec![T::ZERO; lpvid::window_storage_len(dims.r, dims.l, dims.s, p)],
-        vec![T::ZERO; packed_len(len)],
+        // compensated sums, as on the device (lpvid::device::sizes::G)
+        vec![T::ZERO; lpvid::gram_storage_len(len)],
         vec![T::ZERO; len],
     )?;
     for k in 0..sig.len() {
