@@ -166,12 +166,6 @@ impl LpvSs {
         Ok(())
     }
 
-    /// [`LpvSs::validate`] with the error as its message, for the callers that still take
-    /// text (`model.rs` locates the matrix from it, `link` wraps it in a protocol error).
-    pub fn check(&self) -> Result<(), String> {
-        self.validate().map_err(|e| e.to_string())
-    }
-
     /// Free-run simulation from x0 = 0 driven by the inputs and scheduling of `sig` (its
     /// outputs are ignored), with optional innovation `e` (N x l) added. Returns N x l.
     pub fn simulate(&self, sig: &Signals, e: Option<&DMatrix<f64>>) -> DMatrix<f64> {

@@ -10,7 +10,7 @@ use serde::{Deserialize, Serialize};
 use serde_json::{Map, Value};
 
 use crate::data::{DataError, Dataset};
-use crate::lpvss::{LpvSs, Signals};
+use crate::lpvss::{LpvSs, ShapeError, Signals};
 
 /// The column name that stands for the sample index k (so `sin` of it is a sinusoid in time).
 pub const SAMPLE_INDEX: &str = "k";
@@ -1101,8 +1101,8 @@ fn parse_model(v: &Value) -> Result<ModelFile, Loc> {
             c: matrix_or_list(require("C")?, &[key("C")])?,
             d: matrix_or_list(require("D")?, &[key("D")])?,
         };
-        if let Err(msg) = ss.check() {
-            return Err(locate_shape_error(&ss, msg));
+        if let Err(e) = ss.validate() {
+            return Err(locate_shape_error(&ss, &e));
         }
         let (r, l, m) = (ss.r(), ss.l(), ss.m());
         let signals = SignalMap {
@@ -1250,16 +1250,17 @@ fn parse_model(v: &Value) -> Result<ModelFile, Loc> {
 }
 
 /// Turn an `LpvSs::check` message into a located error: which list and which matrix.
-fn locate_shape_error(ss: &LpvSs, msg: String) -> Loc {
+fn locate_shape_error(ss: &LpvSs, e: &ShapeError) -> Loc {
+    let msg = e.to_string();
     let (n, r, l, m) = (ss.n(), ss.r(), ss.l(), ss.m());
-    let (name, mats, rows, cols, counts): (&str, &[DMatrix<f64>], usize, usize, &[usize]) =
-        match msg.chars().next() {
-            Some('A') => ("A", &ss.a, n, n, &[m]),
-            Some('B') => ("B", &ss.b, n, r, &[m]),
-            Some('K') => ("K", &ss.k, n, l, &[m]),
-            Some('C') => ("C", &ss.c, l, n, &[1, m]),
-            _ => ("D", &ss.d, l, r, &[1, m]),
-        };
+    let (name, mats, rows, cols, counts): (&str, &[DMatrix<f64>], usize, usize, &[usize]) = match e
+    {
+        ShapeError::A { .. } => ("A", &ss.a, n, n, &[m]),
+        ShapeError::B { .. } => ("B", &ss.b, n, r, &[m]),
+        ShapeError::K { .. } => ("K", &ss.k, n, l, &[m]),
+        ShapeError::C { .. } => ("C", &ss.c, l, n, &[1, m]),
+        ShapeError::D { .. } => ("D", &ss.d, l, r, &[1, m]),
+    };
     let dims = format!("(n = {n} states from A, r = {r} inputs from B, l = {l} outputs from C)");
     if !counts.contains(&mats.len()) {
         return Loc::new(

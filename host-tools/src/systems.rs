@@ -985,7 +985,7 @@ mod tests {
             b4(100, Some(15.0), 2),
             b5(100, 2),
         ] {
-            e.truth.as_ref().unwrap().check().unwrap();
+            e.truth.as_ref().unwrap().validate().unwrap();
         }
         let (t, c, v) = b6(1);
         assert_eq!((t.len(), c.len(), v.len()), (8000, 1000, 1000));

@@ -168,7 +168,7 @@ fn local_inputs(a: &DeviceArgs) -> Result<Local, CliError> {
                     p.model.display()
                 )));
             };
-            m.check()
+            m.validate()
                 .map_err(|e| CliError::Invalid(format!("{}: {e}", p.model.display())))?;
             Local::Push(mf)
         }

@@ -70,6 +70,9 @@ pub enum LinkError {
     /// An unexpected reply or state.
     #[error("protocol: {0}")]
     Protocol(String),
+    /// The model to push has matrices whose shapes disagree.
+    #[error("model: {0}")]
+    Shape(#[from] crate::lpvss::ShapeError),
 }
 
 /// Counters of a link's life: what the faults cost.
@@ -703,7 +706,7 @@ impl<P: Read + Write> Link<P> {
     /// Push an LPV-SS model for the device's one-step-ahead predictor.
     pub fn push_model(&mut self, model: &LpvSs) -> Result<usize, LinkError> {
         let info = self.ensure_hello()?;
-        model.check().map_err(LinkError::Protocol)?;
+        model.validate()?;
         let sched = model.c.len() > 1 || model.d.len() > 1;
         let vals = model_values(model)?;
         let n = u16::try_from(model.n())
