@@ -999,3 +999,39 @@ mod tridiagonal_tests {
         assert!(r.norm() < 1e-10 * b.norm(), "{}", r.norm());
     }
 }
+
+/// Golden-section search for the minimum of a unimodal `f` on [a, b]: at most `iters`
+/// bracket reductions, stopping early once the bracket is narrower than `tol`; returns the
+/// bracket's midpoint. The one refinement step of the GCV ridge parameter and of the
+/// harmonic fundamental.
+pub fn golden_section(
+    f: impl Fn(f64) -> f64,
+    mut a: f64,
+    mut b: f64,
+    iters: usize,
+    tol: f64,
+) -> f64 {
+    let phi = 0.5 * (5f64.sqrt() - 1.0);
+    let mut c = b - phi * (b - a);
+    let mut d = a + phi * (b - a);
+    let (mut fc, mut fd) = (f(c), f(d));
+    for _ in 0..iters {
+        if fc < fd {
+            b = d;
+            d = c;
+            fd = fc;
+            c = b - phi * (b - a);
+            fc = f(c);
+        } else {
+            a = c;
+            c = d;
+            fc = fd;
+            d = a + phi * (b - a);
+            fd = f(d);
+        }
+        if b - a < tol {
+            break;
+        }
+    }
+    0.5 * (a + b)
+}

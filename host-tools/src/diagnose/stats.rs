@@ -478,30 +478,7 @@ pub fn refine_harmonic(xs: &[Vec<f64>], lo: f64, hi: f64, harmonics: usize) -> f
         .map(|w| (f(w), w))
         .min_by(|a, b| a.0.total_cmp(&b.0))
         .map_or(0.5 * (lo + hi), |v| v.1);
-    let phi = 0.5 * (5f64.sqrt() - 1.0);
-    let (mut a, mut b) = ((best - dw).max(lo), (best + dw).min(hi));
-    let mut c = b - phi * (b - a);
-    let mut d = a + phi * (b - a);
-    let (mut fc, mut fd) = (f(c), f(d));
-    for _ in 0..40 {
-        if fc < fd {
-            b = d;
-            d = c;
-            fd = fc;
-            c = b - phi * (b - a);
-            fc = f(c);
-        } else {
-            a = c;
-            c = d;
-            fc = fd;
-            d = a + phi * (b - a);
-            fd = f(d);
-        }
-        if b - a < 1e-12 {
-            break;
-        }
-    }
-    0.5 * (a + b)
+    crate::linalg::golden_section(f, (best - dw).max(lo), (best + dw).min(hi), 40, 1e-12)
 }
 
 // ------------------------------------------------------------------------------------------

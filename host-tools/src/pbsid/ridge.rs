@@ -78,27 +78,7 @@ pub(crate) fn gcv_minimiser(vmax: f64, gcv: impl Fn(f64) -> f64) -> f64 {
         }
         e += step;
     }
-    let (mut a, mut b) = (best.0 - step, best.0 + step);
-    let phi = 0.5 * (5f64.sqrt() - 1.0);
-    let mut c = b - phi * (b - a);
-    let mut d = a + phi * (b - a);
-    let (mut fc, mut fd) = (f(c), f(d));
-    for _ in 0..40 {
-        if fc < fd {
-            b = d;
-            d = c;
-            fd = fc;
-            c = b - phi * (b - a);
-            fc = f(c);
-        } else {
-            a = c;
-            c = d;
-            fc = fd;
-            d = a + phi * (b - a);
-            fd = f(d);
-        }
-    }
-    let e = 0.5 * (a + b);
+    let e = crate::linalg::golden_section(f, best.0 - step, best.0 + step, 40, 0.0);
     let e = if f(e) <= best.1 { e } else { best.0 };
     vmax * 10f64.powf(e)
 }
