@@ -16,11 +16,24 @@ pub fn vaf(y: &[f64], yhat: &[f64]) -> f64 {
         return 0.0;
     }
     let err: Vec<f64> = y.iter().zip(yhat).map(|(a, b)| a - b).collect();
-    let vy = variance(y);
-    if vy <= 0.0 {
+    vaf_from_variances(variance(y), variance(&err))
+}
+
+/// VAF in percent from var(y) and var(y - yhat): the one formula, also used by scores that
+/// accumulate the variances as they stream (0 when var(y) is not positive).
+pub fn vaf_from_variances(var_y: f64, var_err: f64) -> f64 {
+    if var_y.is_nan() || var_y <= 0.0 {
         return 0.0;
     }
-    100.0 * (1.0 - variance(&err) / vy).max(0.0)
+    100.0 * (1.0 - var_err / var_y).max(0.0)
+}
+
+/// BFR in percent from ||y - yhat|| and ||y - mean(y)|| (0 when the latter is not positive).
+pub fn bfr_from_norms(err_norm: f64, dev_norm: f64) -> f64 {
+    if dev_norm.is_nan() || dev_norm <= 0.0 {
+        return 0.0;
+    }
+    100.0 * (1.0 - err_norm / dev_norm).max(0.0)
 }
 
 /// BFR in percent of one output.
@@ -40,10 +53,7 @@ pub fn bfr(y: &[f64], yhat: &[f64]) -> f64 {
         .map(|a| (a - mean) * (a - mean))
         .sum::<f64>()
         .sqrt();
-    if den <= 0.0 {
-        return 0.0;
-    }
-    100.0 * (1.0 - num / den).max(0.0)
+    bfr_from_norms(num, den)
 }
 
 /// Per-output VAF of the columns of `y` vs `yhat` (N x l), skipping the first `skip` rows.

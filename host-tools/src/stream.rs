@@ -249,17 +249,17 @@ impl<'a> FreeRun<'a> {
         for j in 0..self.y.len() {
             let finite = self.err[j].1.is_finite() && self.sse[j].is_finite();
             let (vy, ve) = (self.y[j].1 / n, self.err[j].1 / n);
-            vaf.push(if finite && vy > 0.0 {
-                100.0 * (1.0 - ve / vy).max(0.0)
-            } else {
-                0.0
-            });
             let den = self.y[j].1.sqrt();
-            bfr.push(if finite && den > 0.0 {
-                100.0 * (1.0 - self.sse[j].sqrt() / den).max(0.0)
+            let (v, b) = if finite {
+                (
+                    crate::metrics::vaf_from_variances(vy, ve),
+                    crate::metrics::bfr_from_norms(self.sse[j].sqrt(), den),
+                )
             } else {
-                0.0
-            });
+                (0.0, 0.0)
+            };
+            vaf.push(v);
+            bfr.push(b);
         }
         Score {
             file: file.to_string(),
