@@ -273,22 +273,10 @@ impl<T: Real, S: AsRef<[T]> + AsMut<[T]>> Gram<T, S> {
         Ok(())
     }
 
-    /// [`Gram::update_batch`] compiled for AVX2 with wider register tiles: the same code and
-    /// the same result, about twice as fast on a host that has AVX2 (the host checks the CPU
-    /// with `is_x86_feature_detected!`, which needs std).
-    ///
-    /// # Safety
-    /// The CPU must support AVX2.
-    #[cfg(target_arch = "x86_64")]
-    #[target_feature(enable = "avx2")]
-    pub unsafe fn update_batch_avx2(&mut self, rows: &[T], n: usize) -> Result<(), Error> {
-        self.check_batch(rows, n)?;
-        self.rank_k_tiled::<8>(rows, n);
-        Ok(())
-    }
-
-    /// Length and finiteness of a batch of `n` rows, before anything changes.
-    fn check_batch(&self, rows: &[T], n: usize) -> Result<(), Error> {
+    /// What [`Gram::update_batch`] checks before anything changes: `n` rows of length
+    /// [`Gram::dim`], finite, with products that do not overflow (a host that computes a
+    /// block's products itself says with this which row was bad, see [`Gram::add_packed`]).
+    pub fn check_batch(&self, rows: &[T], n: usize) -> Result<(), Error> {
         let expected = n.checked_mul(self.dim).ok_or(Error::Overflow)?;
         if rows.len() != expected {
             return Err(Error::Dimension {
@@ -312,29 +300,23 @@ impl<T: Real, S: AsRef<[T]> + AsMut<[T]>> Gram<T, S> {
         if self.lambda != T::ONE && n > 1 {
             // every vector is weighted differently: one at a time
             for w in rows.chunks_exact(self.dim).take(n) {
-                self.rank_k_tiled::<4>(w, 1);
+                self.rank_k_tiled(w, 1);
             }
             return;
         }
-        self.rank_k_tiled::<4>(rows, n);
+        self.rank_k_tiled(rows, n);
     }
 
     /// C += sum_b w_b w_b^T on the packed upper triangle, register-blocked: a tile of four
-    /// triangle rows by `CB` columns is summed over all n vectors in registers and added to
+    /// triangle rows by `CB` = 4 columns is summed over all n vectors in registers and added to
     /// C once, so C is streamed once per batch and each loaded value feeds 4 or `CB`
     /// multiply-adds. With n = 1 (or a zero C) the result is bit-identical to sequential
     /// single updates.
     #[inline(always)]
-    fn rank_k_tiled<const CB: usize>(&mut self, rows: &[T], n: usize) {
+    fn rank_k_tiled(&mut self, rows: &[T], n: usize) {
+        const CB: usize = 4;
         let dim = self.dim;
         if n == 0 {
-            return;
-        }
-        if CB != 4 && self.lambda != T::ONE && n > 1 {
-            // the AVX2 build with forgetting: one vector at a time
-            for w in rows.chunks_exact(dim).take(n) {
-                self.rank_k_tiled::<CB>(w, 1);
-            }
             return;
         }
         self.count += n as u64;
@@ -506,6 +488,36 @@ impl<T: Real, S: AsRef<[T]> + AsMut<[T]>> Gram<T, S> {
         }
         self.count += other.count;
         self.weight += other.weight;
+        Ok(())
+    }
+
+    /// Add a block computed elsewhere: `packed`, the packed upper triangle of the sum of the
+    /// outer products of `n` vectors (a host's BLAS syrk of a batch). The result equals
+    /// [`Gram::update_batch`] of those vectors up to the order of the additions, compensated
+    /// or not as this accumulator is. Needs `packed_len(dim)` finite values and no
+    /// forgetting (each vector would weigh differently: `Error::Mismatch`); on error
+    /// nothing changes.
+    pub fn add_packed(&mut self, packed: &[T], n: u64) -> Result<(), Error> {
+        if self.lambda != T::ONE {
+            return Err(Error::Mismatch);
+        }
+        let p = packed_len(self.dim);
+        check_vec(Field::Regressor, packed, p)?;
+        match self.summation {
+            Summation::Plain => {
+                for (a, v) in self.data.as_mut()[..p].iter_mut().zip(packed) {
+                    *a += *v;
+                }
+            }
+            Summation::Compensated => {
+                let (hi, lo) = self.data.as_mut()[..2 * p].split_at_mut(p);
+                for ((h, l), v) in hi.iter_mut().zip(lo.iter_mut()).zip(packed) {
+                    kahan_add(h, l, *v);
+                }
+            }
+        }
+        self.count += n;
+        self.weight += n as f64;
         Ok(())
     }
 
@@ -1032,30 +1044,38 @@ mod tests {
         assert_eq!(batch.count(), 7);
     }
 
-    #[cfg(target_arch = "x86_64")]
     #[test]
-    fn avx2_batch_equals_plain_batch() {
-        if !std::is_x86_feature_detected!("avx2") {
-            return;
-        }
-        for dim in [1usize, 4, 7, 12, 19, 40] {
-            let n = 13;
-            let rows: Vec<f64> = (0..n * dim)
-                .map(|t| ((t * 53 % 17) as f64 - 8.0) * 0.21)
-                .collect();
-            let mut a = Gram::new(dim, vec![0.0; packed_len(dim)]).unwrap();
-            let mut b = Gram::new(dim, vec![0.0; packed_len(dim)]).unwrap();
+    fn a_block_added_packed_equals_the_batch_update() {
+        let (dim, n) = (6usize, 9usize);
+        let rows: Vec<f64> = (0..n * dim)
+            .map(|t| ((t * 37 % 23) as f64 - 11.0) * 0.13)
+            .collect();
+        let mut block = Gram::new(dim, vec![0.0; packed_len(dim)]).unwrap();
+        block.update_batch(&rows, n).unwrap();
+        for storage in [packed_len(dim), gram_storage_len(dim)] {
+            let mut a = Gram::new(dim, vec![0.0; storage]).unwrap();
+            let mut b = Gram::new(dim, vec![0.0; storage]).unwrap();
             a.update_batch(&rows, n).unwrap();
-            // SAFETY: AVX2 support was checked above.
-            unsafe { b.update_batch_avx2(&rows, n).unwrap() };
-            assert_eq!(a.count(), b.count());
+            b.add_packed(block.packed(), n as u64).unwrap();
+            assert_eq!((a.count(), a.weight()), (b.count(), b.weight()));
             for (x, y) in a.packed().iter().zip(b.packed()) {
                 assert!((x - y).abs() <= 1e-12 * (1.0 + x.abs()));
             }
-            // SAFETY: as above; a bad batch changes nothing.
+            // a bad block, or one on an accumulator with forgetting, changes nothing
             let before = b.packed().to_vec();
-            assert!(unsafe { b.update_batch_avx2(&rows[..dim], 2) }.is_err());
-            assert_eq!(b.packed(), &before[..]);
+            let mut bad = block.packed().to_vec();
+            bad[4] = f64::INFINITY;
+            assert_eq!(
+                b.add_packed(&bad, 1),
+                Err(Error::NonFinite {
+                    field: Field::Regressor,
+                    index: 4
+                })
+            );
+            assert!(b.add_packed(&bad[1..], 1).is_err());
+            b.set_forgetting(0.5).unwrap();
+            assert_eq!(b.add_packed(block.packed(), 1), Err(Error::Mismatch));
+            assert_eq!((b.packed(), b.count()), (&before[..], n as u64));
         }
     }
 

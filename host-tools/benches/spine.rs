@@ -1,6 +1,6 @@
 //! Benchmarks of the spine (issue 2): the core's per-sample statistics update for B1 with
-//! p = 3 and p = 5 in f32 and f64 (compared in the same run with the host's batched update
-//! of the same statistics), and the full LPV-PBSID_opt fit on B1 (primal vs kernel form on
+//! p = 3 and p = 5 in f32 and f64 (compared in the same run with the core's batched update
+//! of the same statistics; the host's syrk path is in `benches/gram_syrk.rs`), and the full LPV-PBSID_opt fit on B1 (primal vs kernel form on
 //! the same data; the MATLAB PBSID toolbox needs 0.25 s and 1.1 s for p = 3 and p = 5 on this
 //! machine, see BENCHMARKS.md).
 
@@ -81,7 +81,7 @@ fn stats_update<T: Real>(c: &mut Criterion, name: &str) {
             k0 += 16;
         };
         group.bench_function(
-            BenchmarkId::new("host batched update (per 16 samples)", format!("B1 p={p}")),
+            BenchmarkId::new("core batched update (per 16 samples)", format!("B1 p={p}")),
             |b| {
                 b.iter(|| {
                     fill(&mut buf);
@@ -89,23 +89,6 @@ fn stats_update<T: Real>(c: &mut Criterion, name: &str) {
                 })
             },
         );
-        // the same core code compiled for AVX2, as the host dispatches it
-        #[cfg(target_arch = "x86_64")]
-        if std::is_x86_feature_detected!("avx2") {
-            group.bench_function(
-                BenchmarkId::new(
-                    "host batched update, AVX2 build (per 16 samples)",
-                    format!("B1 p={p}"),
-                ),
-                |b| {
-                    b.iter(|| {
-                        fill(&mut buf);
-                        // SAFETY: AVX2 support checked above.
-                        unsafe { gram.update_batch_avx2(&buf, 16).unwrap() };
-                    })
-                },
-            );
-        }
     }
     group.finish();
 }

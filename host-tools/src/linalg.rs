@@ -93,63 +93,116 @@ pub fn par_for(n: usize) -> faer::Par {
     }
 }
 
-/// Vectors per batch of a host-side Gram update: enough to amortise streaming the packed
-/// matrix, few enough that the batch stays in cache.
-pub const GRAM_BATCH: usize = 64;
+/// Vectors per batch of a host-side Gram update: enough for the block product to run at
+/// matrix-multiply speed, few enough that the batch stays in cache.
+pub const GRAM_BATCH: usize = 256;
 
-/// The core's [`lpvid::Gram::update_batch`], run in its AVX2 build when this CPU has AVX2
-/// (same code and result; the core itself cannot ask the CPU without std).
-pub fn gram_update_batch<S: AsRef<[f64]> + AsMut<[f64]>>(
-    gram: &mut lpvid::Gram<f64, S>,
-    rows: &[f64],
-    n: usize,
-) -> Result<(), lpvid::Error> {
-    #[cfg(target_arch = "x86_64")]
-    if std::is_x86_feature_detected!("avx2") {
-        // SAFETY: AVX2 support was just checked.
-        return unsafe { gram.update_batch_avx2(rows, n) };
+/// The host's Gram accumulation, one batch of vectors at a time (issue 16, the flop limit).
+/// A batch's sum of outer products is a syrk: it is computed by faer's triangular product
+/// (packed panels, SIMD micro-kernels: what a BLAS does; 4-10x the core's portable register
+/// tiles on this machine, `benches/gram_syrk.rs`) and added with the core's
+/// [`lpvid::Gram::add_packed`], so counting, compensation and merge semantics stay the
+/// core's. Accumulators with forgetting (each vector weighted differently) take the core's
+/// own batch update. The scratch (a dense product and a packed block) is kept between
+/// batches.
+pub struct GramBatch {
+    len: usize,
+    dense: faer::Mat<f64>,
+    packed: Vec<f64>,
+}
+
+impl GramBatch {
+    /// Scratch for vectors of length `len`.
+    pub fn new(len: usize) -> Self {
+        Self {
+            len,
+            dense: faer::Mat::zeros(len, len),
+            packed: vec![0.0; lpvid::packed_len(len)],
+        }
     }
-    gram.update_batch(rows, n)
+
+    /// Add the outer products of the `n` vectors stored row-major in `rows` (n x len) to
+    /// `gram`, as [`lpvid::Gram::update_batch`] does: the same checks and errors, and on
+    /// error nothing changes.
+    pub fn add<S: AsRef<[f64]> + AsMut<[f64]>>(
+        &mut self,
+        gram: &mut lpvid::Gram<f64, S>,
+        rows: &[f64],
+        n: usize,
+    ) -> Result<(), lpvid::Error> {
+        let len = self.len;
+        if gram.dim() != len || gram.forgetting() != 1.0 {
+            return gram.update_batch(rows, n);
+        }
+        if n.checked_mul(len) != Some(rows.len()) {
+            return gram.check_batch(rows, n);
+        }
+        // the rows are the columns of a column-major len x n matrix W: the block is W W^T
+        let w = faer::MatRef::from_column_major_slice(rows, len, n);
+        faer::linalg::matmul::triangular::matmul(
+            self.dense.as_mut(),
+            faer::linalg::matmul::triangular::BlockStructure::TriangularLower,
+            faer::Accum::Replace,
+            w,
+            faer::linalg::matmul::triangular::BlockStructure::Rectangular,
+            w.transpose(),
+            faer::linalg::matmul::triangular::BlockStructure::Rectangular,
+            1.0,
+            faer::Par::Seq,
+        );
+        // row i of the packed upper triangle is column i of the lower one from the diagonal
+        let mut off = 0;
+        for i in 0..len {
+            let col = self.dense.col_as_slice(i);
+            self.packed[off..off + len - i].copy_from_slice(&col[i..]);
+            off += len - i;
+        }
+        // a non-finite value or an overflowing product shows in the block (its diagonal
+        // holds the sums of squares); the row-wise check then names it
+        gram.add_packed(&self.packed, n as u64)
+            .or_else(|e| gram.check_batch(rows, n).and(Err(e)))
+    }
 }
 
 /// The core's Gram of `count` vectors of length `len`, each written by `row(k, dst)` into a
-/// batch of [`GRAM_BATCH`] and accumulated by [`gram_update_batch`]: the one batching loop
-/// of the host's statistics (the primal regression, the diagnosis' residual regressions).
+/// batch of [`GRAM_BATCH`] and accumulated by [`GramBatch`].
 pub fn gram_from_rows(
     len: usize,
     count: usize,
     mut row: impl FnMut(usize, &mut [f64]),
 ) -> Result<lpvid::Gram<f64, Vec<f64>>, lpvid::Error> {
     let mut gram = lpvid::Gram::new(len, vec![0.0; lpvid::packed_len(len)])?;
-    let mut buf = vec![0.0; GRAM_BATCH * len];
-    let mut k = 0;
-    while k < count {
-        let nb = GRAM_BATCH.min(count - k);
-        for b in 0..nb {
-            row(k + b, &mut buf[b * len..(b + 1) * len]);
-        }
-        gram_update_batch(&mut gram, &buf[..nb * len], nb)?;
-        k += nb;
-    }
+    add_rows(&mut gram, 0..count, &mut row)?;
     Ok(gram)
 }
 
 /// Add the vectors `range` (each written by `row(k, dst)`) into `gram`, in batches of
-/// [`GRAM_BATCH`] through [`gram_update_batch`].
+/// [`GRAM_BATCH`] through [`GramBatch`]: the one batching loop of the host's statistics
+/// (the primal regression, the streamed statistics, the diagnosis' residual regressions).
 pub fn gram_add_rows<S: AsRef<[f64]> + AsMut<[f64]>>(
     gram: &mut lpvid::Gram<f64, S>,
     range: std::ops::Range<usize>,
     row: &(impl Fn(usize, &mut [f64]) + ?Sized),
 ) -> Result<(), lpvid::Error> {
+    add_rows(gram, range, &mut |k, dst| row(k, dst))
+}
+
+/// The loop of [`gram_add_rows`] for any closure.
+fn add_rows<S: AsRef<[f64]> + AsMut<[f64]>>(
+    gram: &mut lpvid::Gram<f64, S>,
+    range: std::ops::Range<usize>,
+    row: &mut dyn FnMut(usize, &mut [f64]),
+) -> Result<(), lpvid::Error> {
     let len = gram.dim();
-    let mut buf = vec![0.0; GRAM_BATCH * len];
+    let mut batch = GramBatch::new(len);
+    let mut buf = vec![0.0; GRAM_BATCH.min(range.len()) * len];
     let mut k = range.start;
     while k < range.end {
         let nb = GRAM_BATCH.min(range.end - k);
         for b in 0..nb {
             row(k + b, &mut buf[b * len..(b + 1) * len]);
         }
-        gram_update_batch(gram, &buf[..nb * len], nb)?;
+        batch.add(gram, &buf[..nb * len], nb)?;
         k += nb;
     }
     Ok(())
@@ -1034,4 +1087,78 @@ pub fn golden_section(
         }
     }
     0.5 * (a + b)
+}
+
+#[cfg(test)]
+mod gram_batch_tests {
+    use super::*;
+
+    fn rows(n: usize, len: usize, seed: u64) -> Vec<f64> {
+        let mut x = seed.wrapping_mul(0x9E37_79B9_7F4A_7C15) | 1;
+        (0..n * len)
+            .map(|_| {
+                x ^= x << 13;
+                x ^= x >> 7;
+                x ^= x << 17;
+                (x >> 11) as f64 / (1u64 << 53) as f64 * 4.0 - 1.0
+            })
+            .collect()
+    }
+
+    #[test]
+    fn syrk_batches_equal_the_core_update_plain_and_compensated() {
+        for len in [1, 5, 32, 77] {
+            for storage in [lpvid::packed_len(len), lpvid::gram_storage_len(len)] {
+                let data = rows(300, len, len as u64);
+                let mut core = lpvid::Gram::new(len, vec![0.0; storage]).unwrap();
+                let mut host = lpvid::Gram::new(len, vec![0.0; storage]).unwrap();
+                let mut batch = GramBatch::new(len);
+                // uneven batches, as the loops hand them over
+                let mut k = 0;
+                for nb in [1usize, 128, 64, 107] {
+                    let blk = &data[k * len..(k + nb) * len];
+                    core.update_batch(blk, nb).unwrap();
+                    batch.add(&mut host, blk, nb).unwrap();
+                    k += nb;
+                }
+                assert_eq!(host.count(), 300);
+                assert_eq!(host.weight(), 300.0);
+                let scale = core.packed().iter().fold(0.0f64, |m, v| m.max(v.abs()));
+                for (a, b) in core.packed().iter().zip(host.packed()) {
+                    assert!((a - b).abs() <= 1e-13 * scale, "len {len}: {a} vs {b}");
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn a_bad_batch_changes_nothing() {
+        let len = 40;
+        let mut data = rows(50, len, 3);
+        let mut gram = lpvid::Gram::new(len, vec![0.0; lpvid::packed_len(len)]).unwrap();
+        let mut batch = GramBatch::new(len);
+        batch.add(&mut gram, &data[..10 * len], 10).unwrap();
+        let before = gram.packed().to_vec();
+        data[20 * len + 3] = f64::NAN;
+        let e = batch.add(&mut gram, &data[10 * len..], 40).unwrap_err();
+        assert!(matches!(e, lpvid::Error::NonFinite { index, .. } if index == 10 * len + 3));
+        data[20 * len + 3] = 1e200;
+        assert!(batch.add(&mut gram, &data[10 * len..], 40).is_err());
+        assert!(batch.add(&mut gram, &data[10 * len..], 41).is_err());
+        assert_eq!(gram.packed(), &before[..]);
+        assert_eq!(gram.count(), 10);
+    }
+
+    #[test]
+    fn forgetting_takes_the_core_path() {
+        let len = 40;
+        let data = rows(20, len, 9);
+        let mut a = lpvid::Gram::new(len, vec![0.0; lpvid::packed_len(len)]).unwrap();
+        let mut b = lpvid::Gram::new(len, vec![0.0; lpvid::packed_len(len)]).unwrap();
+        a.set_forgetting(0.9).unwrap();
+        b.set_forgetting(0.9).unwrap();
+        GramBatch::new(len).add(&mut a, &data, 20).unwrap();
+        b.update_batch(&data, 20).unwrap();
+        assert_eq!(a.packed(), b.packed());
+    }
 }

@@ -139,25 +139,17 @@ impl Statistics {
         let len = self.gram.dim();
         let windows = n - d.p;
         let mut gram = Gram::new(len, vec![0.0; packed_len(len)])?;
-        const BATCH: usize = crate::linalg::GRAM_BATCH;
-        let mut buf = vec![0.0; BATCH * len];
-        let mut k = 0;
-        while k < windows {
-            let nb = BATCH.min(windows - k);
-            for b in 0..nb {
-                let row = &mut buf[b * len..(b + 1) * len];
-                write_stat_vector(&d, StatsLayout::Extended, &slab, k + b, row);
-            }
-            crate::linalg::gram_update_batch(&mut gram, &buf[..nb * len], nb).map_err(|e| {
-                Error::Data(DataError::new(
-                    source,
-                    None,
-                    None,
-                    format!("windows {k}..{}: {e}", k + nb),
-                ))
-            })?;
-            k += nb;
-        }
+        let row = |k: usize, dst: &mut [f64]| {
+            write_stat_vector(&d, StatsLayout::Extended, &slab, k, dst);
+        };
+        crate::linalg::gram_add_rows(&mut gram, 0..windows, &row).map_err(|e| {
+            Error::Data(DataError::new(
+                source,
+                None,
+                None,
+                format!("windows 0..{windows}: {e}"),
+            ))
+        })?;
         self.gram.merge(&gram)?;
         self.experiments += 1;
         Ok(windows as u64)
