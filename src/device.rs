@@ -38,10 +38,13 @@
 use crate::error::Error;
 use crate::lasso::{cross_from, CoordinateDescent, Leading, Penalty, Problem, Settings};
 use crate::protocol::{
-    caps, decode_frame, encode_frame, max_raw, read_value, write_values, Config, Deframer,
-    ErrorCode, ErrorReply, Event, Info, Layout, Message, ModelChunk, Prediction, SolveRequest,
-    SolveSummary, Status, WireReal, MESSAGE_HEADROOM, VERSION,
+    caps, decode_frame_checked, encode_frame, encode_frame_version, max_raw, read_value,
+    write_values, Config, Deframer, ErrorCode, ErrorReply, Estimate, Event, Info, Layout, Message,
+    ModelChunk, Prediction, Rejected, SolveRequest, SolveSummary, Status, Track, WireReal,
+    MESSAGE_HEADROOM, OLDEST_ANSWERED, VERSION,
 };
+use crate::sliding::{inline_window_len, rebase_gram, HalfWindow};
+use crate::stats::Gram;
 use core::mem::MaybeUninit;
 
 use crate::model::{values_len, ModelDims};
@@ -92,9 +95,14 @@ impl<T: Real, const W: usize, const G: usize, const R: usize> StatsSlot<T, W, G,
     }
 
     /// (Re)build the statistics for `dims` in place; on error the device is unconfigured.
-    fn configure(&mut self, dims: PbsidDims, layout: StatsLayout) -> Result<(), Error> {
+    fn configure(
+        &mut self,
+        dims: PbsidDims,
+        layout: StatsLayout,
+        summation: Summation,
+    ) -> Result<(), Error> {
         self.ready = false;
-        PbsidStatsArrays::init_in_place_with(&mut self.val, dims, layout, Summation::Compensated)?;
+        PbsidStatsArrays::init_in_place_with(&mut self.val, dims, layout, summation)?;
         self.ready = true;
         Ok(())
     }
@@ -194,9 +202,101 @@ struct Engine<
     received: usize,
     model_loaded: bool,
     pred_count: u32,
+    /// The sliding window's bookkeeping (the snapshot is in the Gram's spare storage).
+    window: Option<HalfWindow>,
+    /// The recursive estimate's settings and record.
+    track: Option<Track>,
+    est: EstimateRecord<T>,
     vals: [u8; F],
     raw: [u8; F],
     tx: [u8; F],
+}
+
+/// The one-step prediction errors of a solution in force (the VARX predictor of problem
+/// (13), kernel paper eq. (12)-(13)): e = y_{k+p} - Theta [z_k^p; u_{k+p}] on every new
+/// statistic vector. The device keeps one per recursive estimate; the host replays it to
+/// check the device bit for bit.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct OneStep<T> {
+    /// Predictions made.
+    pub count: u32,
+    /// Sum of squared errors per output (the first l entries).
+    pub sse: [T; MAX_CHANNELS],
+    /// The last error per output.
+    pub last: [T; MAX_CHANNELS],
+}
+
+impl<T: Real> Default for OneStep<T> {
+    fn default() -> Self {
+        Self::new()
+    }
+}
+
+impl<T: Real> OneStep<T> {
+    /// An empty record.
+    pub const fn new() -> Self {
+        OneStep {
+            count: 0,
+            sse: [T::ZERO; MAX_CHANNELS],
+            last: [T::ZERO; MAX_CHANNELS],
+        }
+    }
+
+    /// Predict y_{k+p} of the statistic vector `v` (head [z_k^p; u_{k+p}; y_{k+p}], e.g.
+    /// [`PbsidStats::last_vector`]) with `theta` (l x `columns`, row-major, columns = q + r)
+    /// and record the error. Too short a `v` or `theta`, or l > [`MAX_CHANNELS`]: nothing.
+    pub fn add(&mut self, v: &[T], theta: &[T], columns: usize, l: usize) {
+        if v.len() < columns + l || theta.len() < l * columns || l > MAX_CHANNELS {
+            return;
+        }
+        let (phi, y) = (&v[..columns], &v[columns..columns + l]);
+        for o in 0..l {
+            let row = &theta[o * columns..(o + 1) * columns];
+            let mut yhat = T::ZERO;
+            for (t, x) in row.iter().zip(phi) {
+                yhat += *t * *x;
+            }
+            let e = y[o] - yhat;
+            self.sse[o] += e * e;
+            self.last[o] = e;
+        }
+        self.count = self.count.wrapping_add(1);
+    }
+}
+
+/// The recursive estimate's record ([`Message::Estimate`]).
+#[derive(Debug, Clone, Copy)]
+struct EstimateRecord<T> {
+    since_solve: u32,
+    solves: u32,
+    failures: u32,
+    at_sample: u32,
+    summary: Option<SolveSummary>,
+    /// The solution in force since it was solved.
+    one_step: OneStep<T>,
+    /// The previous solution over its whole interval (between the last two solves).
+    interval: OneStep<T>,
+}
+
+impl<T: Real> EstimateRecord<T> {
+    const fn new() -> Self {
+        EstimateRecord {
+            since_solve: 0,
+            solves: 0,
+            failures: 0,
+            at_sample: 0,
+            summary: None,
+            one_step: OneStep::new(),
+            interval: OneStep::new(),
+        }
+    }
+
+    /// A new solution is in force: the finished one's record becomes the interval's, and
+    /// the new one starts empty.
+    fn clear_predictions(&mut self) {
+        self.interval = self.one_step;
+        self.one_step = OneStep::new();
+    }
 }
 
 /// The device engine with its static capacities: `W` window values, `G` Gram values, `R`
@@ -281,6 +381,9 @@ impl<
                 received: 0,
                 model_loaded: false,
                 pred_count: 0,
+                window: None,
+                track: None,
+                est: EstimateRecord::new(),
                 vals: [0; F],
                 raw: [0; F],
                 tx: [0; F],
@@ -295,8 +398,9 @@ impl<
             match self.rx.push(b) {
                 Event::Pending => {}
                 Event::Oversize => self.eng.reject(ErrorCode::Oversize, &mut send),
-                Event::Frame(buf) => match decode_frame(buf) {
-                    Err(code) => self.eng.reject(code, &mut send),
+                Event::Frame(buf) => match decode_frame_checked(buf) {
+                    Err(Rejected::Frame(code)) => self.eng.reject(code, &mut send),
+                    Err(Rejected::Version(v)) => self.eng.reject_version(v.theirs, &mut send),
                     Ok(pkt) => {
                         self.eng.frames_ok = self.eng.frames_ok.wrapping_add(1);
                         self.eng.on_packet(pkt.seq, &pkt.msg, &mut send);
@@ -332,6 +436,26 @@ impl<
         const F: usize,
     > Engine<T, W, G, R, X, M, F>
 {
+    /// NAK a frame of another protocol version: `detail` is this device's version, and an
+    /// older peer (from [`OLDEST_ANSWERED`]) gets the NAK in its own framing so it can read
+    /// it (the `Error` reply is encoded alike in every version); a newer peer reads our
+    /// version byte.
+    fn reject_version<S: FnMut(&[u8])>(&mut self, theirs: u8, send: &mut S) {
+        self.frames_rejected = self.frames_rejected.wrapping_add(1);
+        let msg = Message::Error(ErrorReply {
+            code: ErrorCode::WrongVersion,
+            detail: VERSION as u32,
+        });
+        let version = if (OLDEST_ANSWERED..VERSION).contains(&theirs) {
+            theirs
+        } else {
+            VERSION
+        };
+        if let Ok(n) = encode_frame_version(version, 0, &msg, &mut self.raw, &mut self.tx) {
+            send(&self.tx[..n]);
+        }
+    }
+
     fn reject<S: FnMut(&[u8])>(&mut self, code: ErrorCode, send: &mut S) {
         self.frames_rejected = self.frames_rejected.wrapping_add(1);
         let detail = if code == ErrorCode::WrongVersion {
@@ -357,7 +481,12 @@ impl<
             solver_cap: c(X),
             model_cap: c(M),
             max_channels: MAX_CHANNELS as u16,
-            capabilities: caps::EXTENDED | caps::SOLVE | caps::PREDICT,
+            capabilities: caps::EXTENDED
+                | caps::SOLVE
+                | caps::PREDICT
+                | caps::FORGETTING
+                | caps::WINDOW
+                | caps::TRACK,
         }
     }
 
@@ -366,12 +495,17 @@ impl<
             Some(c) => (c.r, c.l, c.s, c.p),
             None => (0, 0, 0, 0),
         };
-        let (windows, gram_len) = match self.stats.get() {
+        let (windows, gram_len, weight) = match self.stats.get() {
             Some(st) => (
                 st.gram().count(),
                 u32::try_from(st.gram().packed().len()).unwrap_or(u32::MAX),
+                st.gram().weight() as f32,
             ),
-            None => (0, 0),
+            None => (0, 0, 0.0),
+        };
+        let (forgetting, window) = match &self.config {
+            Some(c) => (c.forgetting, c.window),
+            None => (1.0, 0),
         };
         Status {
             configured: self.stats.is_some(),
@@ -386,6 +520,10 @@ impl<
             frames_ok: self.frames_ok,
             frames_rejected: self.frames_rejected,
             model_loaded: self.model_loaded,
+            forgetting,
+            window,
+            weight,
+            solves: self.est.solves,
         }
     }
 
@@ -410,10 +548,12 @@ impl<
             Message::PullStats { offset, count } => self.pull(seq, offset, count, false, send),
             Message::PullSolution { offset, count } => self.pull(seq, offset, count, true, send),
             Message::GetPrediction => self.prediction(seq, send),
+            Message::GetEstimate => self.estimate(seq, send),
             Message::Configure(_)
             | Message::Samples { .. }
             | Message::Solve(_)
             | Message::PushModel(_)
+            | Message::Track(_)
             | Message::Reset => {
                 if seq != 0 && self.last_seq == Some(seq) {
                     if let Some(c) = self.cached {
@@ -426,6 +566,7 @@ impl<
                     Message::Samples { first, values } => self.samples(first, values),
                     Message::Solve(req) => self.solve(req),
                     Message::PushModel(ch) => self.push_model(&ch),
+                    Message::Track(t) => self.set_track(t),
                     _ => self.reset(),
                 };
                 self.last_seq = Some(seq);
@@ -438,7 +579,8 @@ impl<
             | Message::Solved(_)
             | Message::Ack
             | Message::Error(_)
-            | Message::Prediction(_) => {
+            | Message::Prediction(_)
+            | Message::Estimate(_) => {
                 let m = Message::Error(ErrorReply {
                     code: ErrorCode::UnexpectedMessage,
                     detail: 0,
@@ -531,9 +673,19 @@ impl<
     }
 
     fn configure(&mut self, c: Config) -> Cached {
-        if c.forgetting != 1.0 {
-            return err(ErrorCode::Unsupported, 0);
+        let lambda = c.forgetting;
+        if !(lambda.is_finite() && lambda > 0.0 && lambda <= 1.0) {
+            return err(ErrorCode::Unsupported, 1);
         }
+        let window = match c.window {
+            0 => None,
+            1 => return err(ErrorCode::Unsupported, 3),
+            _ if lambda != 1.0 => return err(ErrorCode::Unsupported, 2),
+            n => match HalfWindow::new(n as u64) {
+                Ok(w) => Some(w),
+                Err(_) => return err(ErrorCode::Unsupported, 3),
+            },
+        };
         let (r, l, s, p) = (c.r as usize, c.l as usize, c.s as usize, c.p as usize);
         let dims = match PbsidDims::new(r, l, s, p) {
             Ok(d) => d,
@@ -554,16 +706,25 @@ impl<
         if len > R {
             return err(ErrorCode::Capacity, len);
         }
-        // compensated sums: two packed triangles (totals and their low parts)
-        let g = len.saturating_mul(len + 1);
-        if g > G {
-            return err(ErrorCode::Capacity, g / 2);
-        }
+        // compensated sums: two packed triangles (totals and their low parts); a window also
+        // keeps its snapshot there (plain totals when three triangles do not fit)
+        let Some(summation) = device_summation(len, window.is_some(), G) else {
+            return err(ErrorCode::Capacity, packed_len(len));
+        };
         // in place: the Gram is zeroed where it lives, never copied through the stack
-        if self.stats.configure(dims, layout).is_err() {
+        if self.stats.configure(dims, layout, summation).is_err() {
             return err(ErrorCode::BadConfig, 0);
         }
+        if let Some(st) = self.stats.get_mut() {
+            if st.set_forgetting(T::of(lambda as f64)).is_err() {
+                self.stats.ready = false;
+                return err(ErrorCode::Unsupported, 1);
+            }
+        }
         self.config = Some(c);
+        self.window = window;
+        self.track = None;
+        self.est = EstimateRecord::new();
         self.next_sample = 0;
         self.duplicate_samples = 0;
         self.solved = None;
@@ -579,10 +740,16 @@ impl<
             return err(ErrorCode::NotConfigured, 0);
         };
         st.gram_mut().reset();
+        // the window's snapshot lives after the sums
+        st.gram_mut().storage_parts().2.fill(T::ZERO);
+        if let Some(w) = self.window.as_mut() {
+            w.clear();
+        }
         st.break_window();
         self.next_sample = 0;
         self.duplicate_samples = 0;
         self.solved = None;
+        self.est = EstimateRecord::new();
         self.clear_predictor();
         Cached::Ack
     }
@@ -622,11 +789,28 @@ impl<
             }
             let (u, rest) = buf[..per].split_at(d.r);
             let (y, p) = rest.split_at(d.l);
-            if st.update(u, y, p).is_err() {
-                return err(
-                    ErrorCode::SampleRejected,
-                    (first as usize).saturating_add(i),
-                );
+            let accumulated = match st.update(u, y, p) {
+                Ok(a) => a,
+                Err(_) => {
+                    return err(
+                        ErrorCode::SampleRejected,
+                        (first as usize).saturating_add(i),
+                    )
+                }
+            };
+            if accumulated {
+                if let Some(w) = self.window.as_mut() {
+                    if w.added() {
+                        // the spare storage was sized at the configuration: cannot fail
+                        let _ = rebase_gram(st.gram_mut(), None, w.half());
+                    }
+                }
+                if let Some(sum) = &self.solved {
+                    let cols = sum.columns as usize;
+                    self.est
+                        .one_step
+                        .add(st.last_vector(), &self.solver, cols, d.l);
+                }
             }
             if self.model_loaded {
                 if let (Some(sh), Some(c)) = (self.shape, &self.config) {
@@ -639,6 +823,22 @@ impl<
                 }
             }
             self.next_sample = self.next_sample.wrapping_add(1);
+            if let Some(t) = self.track {
+                self.est.since_solve = self.est.since_solve.saturating_add(1);
+                if t.every > 0 && self.est.since_solve >= t.every {
+                    self.est.since_solve = 0;
+                    match solve_statistics(st.gram(), &d, &t.solve, &mut self.solver, true) {
+                        Ok(sum) => {
+                            self.solved = Some(sum);
+                            self.est.summary = Some(sum);
+                            self.est.solves = self.est.solves.wrapping_add(1);
+                            self.est.at_sample = self.next_sample;
+                            self.est.clear_predictions();
+                        }
+                        Err(_) => self.est.failures = self.est.failures.wrapping_add(1),
+                    }
+                }
+            }
         }
         Cached::Status(self.status())
     }
@@ -648,82 +848,75 @@ impl<
         let Some(st) = self.stats.get() else {
             return err(ErrorCode::NotConfigured, 0);
         };
+        match solve_statistics(st.gram(), &st.dims(), &req, &mut self.solver, false) {
+            Ok(s) => {
+                self.solved = Some(s);
+                self.est.clear_predictions();
+                Cached::Solved(s)
+            }
+            Err(e) => Cached::Error(e),
+        }
+    }
+
+    fn set_track(&mut self, t: Track) -> Cached {
+        let Some(st) = self.stats.get() else {
+            return err(ErrorCode::NotConfigured, 0);
+        };
         let d = st.dims();
         let Ok(q) = d.q() else {
             return err(ErrorCode::BadConfig, 0);
         };
-        let (qc, l) = (q + d.r, d.l);
-        let need = (3 * l + 2).saturating_mul(qc);
+        let need = solver_len(d.l, q + d.r, true);
         if need > X {
             return err(ErrorCode::Capacity, need);
         }
-        let ratio = req.lambda_ratio;
+        let ratio = t.solve.lambda_ratio;
         if !(ratio.is_finite() && ratio >= 0.0) {
             return err(ErrorCode::BadConfig, 0);
         }
-        let gram = st.gram();
-        if gram.count() == 0 {
-            return err(ErrorCode::SolveFailed, 0);
-        }
-        let (theta, rest) = self.solver.split_at_mut(l * qc);
-        let (cross, rest) = rest.split_at_mut(l * qc);
-        let (weights, rest) = rest.split_at_mut(qc);
-        let work = &mut rest[..(l + 1) * qc];
-        let nwin = T::of(gram.count() as f64);
-        for (j, w) in weights.iter_mut().enumerate() {
-            let g = gram.get(j, j);
-            *w = if req.standardise && g > T::ZERO {
-                (g / nwin).sqrt()
-            } else {
-                T::ONE
-            };
-        }
-        for v in theta.iter_mut() {
-            *v = T::ZERO;
-        }
-        let res = (|| -> Result<SolveSummary, Error> {
-            let lead = Leading::new(gram, qc)?;
-            cross_from(gram, qc, l, cross)?;
-            let penalty = if req.group {
-                Penalty::Group
-            } else {
-                Penalty::L1
-            };
-            let prob = Problem::new(&lead, cross, l, penalty)?.with_weights(weights)?;
-            let mut cd = CoordinateDescent::new(l, qc, work)?;
-            let settings = Settings::default();
-            let lmax = cd.lambda_max(&prob, theta, &settings)?;
-            let lambda = lmax * T::of(ratio as f64);
-            let fit = cd.solve(&prob, lambda, theta, &settings)?;
-            Ok(SolveSummary {
-                columns: qc as u32,
-                outputs: l as u8,
-                lambda: lambda.to_f64() as f32,
-                lambda_max: lmax.to_f64() as f32,
-                iterations: fit.iterations as u32,
-                converged: fit.converged,
-                active: fit.active as u32,
-                kkt: fit.kkt.to_f64() as f32,
-                objective: fit.objective.to_f64() as f32,
-            })
-        })();
-        match res {
-            Ok(s) => {
-                self.solved = Some(s);
-                Cached::Solved(s)
-            }
-            Err(e) => err(
-                ErrorCode::SolveFailed,
-                match e {
-                    Error::Singular => 1,
-                    Error::NoConvergence => 2,
-                    Error::Overflow => 3,
-                    _ => 4,
-                },
-            ),
-        }
+        self.track = if t.every == 0 { None } else { Some(t) };
+        self.est.since_solve = 0;
+        Cached::Ack
     }
 
+    fn estimate<S: FnMut(&[u8])>(&mut self, seq: u32, send: &mut S) {
+        let msg = match &self.config {
+            None => Message::Error(ErrorReply {
+                code: ErrorCode::NotConfigured,
+                detail: 0,
+            }),
+            Some(c) => {
+                let l = c.l as usize;
+                if 2 * l * T::BYTES > F {
+                    Message::Error(ErrorReply {
+                        code: ErrorCode::Capacity,
+                        detail: 0,
+                    })
+                } else {
+                    let rec = &self.est.interval;
+                    let a =
+                        write_values(&rec.sse[..l], &mut self.vals[..l * T::BYTES]).unwrap_or(0);
+                    // the newest error: of the solution in force, or of the interval's
+                    let last = if self.est.one_step.count > 0 {
+                        &self.est.one_step.last
+                    } else {
+                        &rec.last
+                    };
+                    let b = write_values(&last[..l], &mut self.vals[a..]).unwrap_or(0);
+                    Message::Estimate(Estimate {
+                        solves: self.est.solves,
+                        failures: self.est.failures,
+                        at_sample: self.est.at_sample,
+                        summary: self.est.summary.unwrap_or(EMPTY_SUMMARY),
+                        count: rec.count,
+                        sse: &self.vals[..a],
+                        last_error: &self.vals[a..a + b],
+                    })
+                }
+            }
+        };
+        emit(&mut self.raw, &mut self.tx, seq, &msg, send);
+    }
     fn push_model(&mut self, ch: &ModelChunk<'_>) -> Cached {
         let Some(c) = self.config else {
             return err(ErrorCode::NotConfigured, 0);
@@ -777,6 +970,141 @@ impl<
     }
 }
 
+/// The summary a [`Message::Estimate`] carries before the first solve.
+const EMPTY_SUMMARY: SolveSummary = SolveSummary {
+    columns: 0,
+    outputs: 0,
+    lambda: 0.0,
+    lambda_max: 0.0,
+    iterations: 0,
+    converged: false,
+    active: 0,
+    kkt: 0.0,
+    objective: 0.0,
+};
+
+/// How a device with `g` Gram values sums a statistic vector of length `len`: compensated
+/// without a window (two packed triangles); with a window (its snapshot is one more
+/// triangle, [`crate::sliding::rebase_gram`]) compensated if three triangles fit, plain if
+/// two do; `None` if it does not fit. The host's bit-for-bit check follows the same rule.
+pub fn device_summation(len: usize, window: bool, g: usize) -> Option<Summation> {
+    if !window {
+        return (crate::stats::gram_storage_len(len) <= g).then_some(Summation::Compensated);
+    }
+    if inline_window_len(len, true) <= g {
+        Some(Summation::Compensated)
+    } else if inline_window_len(len, false) <= g {
+        Some(Summation::Plain)
+    } else {
+        None
+    }
+}
+
+/// Solver values a solve of problem (13) with `columns` = q + r regressors and `l`
+/// outputs needs: (3 l + 2) columns from a cold start, (4 l + 2) columns warm-started (the
+/// previous solution is kept, to restore it if the solve fails).
+pub const fn solver_len(l: usize, columns: usize, warm: bool) -> usize {
+    (if warm { 4 * l + 2 } else { 3 * l + 2 }) * columns
+}
+
+/// Solve problem (13), y_{k+p} on [z_k^p; u_{k+p}], from the leading block of `gram` with
+/// the core's coordinate-descent Lasso (sparse paper problem (33); `req.lambda_ratio` 0 is
+/// the least-squares PBSID/VARX regression). The device engine and the host's check call
+/// this one function, so both compute the same bits.
+///
+/// `solver` ([`solver_len`] values) is [Theta (l x (q + r)) | C | weights | CD work |
+/// previous Theta (warm only)]. `warm`: start from the Theta in `solver` (a recursive
+/// estimate) and leave it unchanged on failure; cold: start from zeros. Standardising
+/// weights are sqrt(G_jj / N) with N the effective count ([`Gram::weight`]: with forgetting,
+/// sum of lambda^age).
+pub fn solve_statistics<T: Real, S: AsRef<[T]> + AsMut<[T]>>(
+    gram: &Gram<T, S>,
+    dims: &PbsidDims,
+    req: &SolveRequest,
+    solver: &mut [T],
+    warm: bool,
+) -> Result<SolveSummary, ErrorReply> {
+    let fail = |code: ErrorCode, detail: usize| ErrorReply {
+        code,
+        detail: u32::try_from(detail).unwrap_or(u32::MAX),
+    };
+    let q = dims.q().map_err(|_| fail(ErrorCode::BadConfig, 0))?;
+    let (qc, l) = (q + dims.r, dims.l);
+    let need = solver_len(l, qc, warm);
+    if need > solver.len() {
+        return Err(fail(ErrorCode::Capacity, need));
+    }
+    let ratio = req.lambda_ratio;
+    if !(ratio.is_finite() && ratio >= 0.0) {
+        return Err(fail(ErrorCode::BadConfig, 0));
+    }
+    if gram.count() == 0 {
+        return Err(fail(ErrorCode::SolveFailed, 0));
+    }
+    let (theta, rest) = solver[..need].split_at_mut(l * qc);
+    let (cross, rest) = rest.split_at_mut(l * qc);
+    let (weights, rest) = rest.split_at_mut(qc);
+    let (work, previous) = rest.split_at_mut((l + 1) * qc);
+    let nwin = T::of(gram.weight());
+    for (j, w) in weights.iter_mut().enumerate() {
+        let g = gram.get(j, j);
+        *w = if req.standardise && g > T::ZERO {
+            (g / nwin).sqrt()
+        } else {
+            T::ONE
+        };
+    }
+    if warm {
+        previous.copy_from_slice(theta);
+    } else {
+        theta.fill(T::ZERO);
+    }
+    let res = (|| -> Result<SolveSummary, Error> {
+        let lead = Leading::new(gram, qc)?;
+        cross_from(gram, qc, l, cross)?;
+        let penalty = if req.group {
+            Penalty::Group
+        } else {
+            Penalty::L1
+        };
+        let prob = Problem::new(&lead, cross, l, penalty)?.with_weights(weights)?;
+        let mut cd = CoordinateDescent::new(l, qc, work)?;
+        let settings = Settings::default();
+        let lmax = cd.lambda_max(&prob, theta, &settings)?;
+        if warm {
+            // lambda_max leaves its own point in theta: start from the last solution
+            theta.copy_from_slice(previous);
+        }
+        let lambda = lmax * T::of(ratio as f64);
+        let fit = cd.solve(&prob, lambda, theta, &settings)?;
+        Ok(SolveSummary {
+            columns: qc as u32,
+            outputs: l as u8,
+            lambda: lambda.to_f64() as f32,
+            lambda_max: lmax.to_f64() as f32,
+            iterations: fit.iterations as u32,
+            converged: fit.converged,
+            active: fit.active as u32,
+            kkt: fit.kkt.to_f64() as f32,
+            objective: fit.objective.to_f64() as f32,
+        })
+    })();
+    res.map_err(|e| {
+        if warm {
+            theta.copy_from_slice(previous);
+        }
+        fail(
+            ErrorCode::SolveFailed,
+            match e {
+                Error::Singular => 1,
+                Error::NoConvergence => 2,
+                Error::Overflow => 3,
+                _ => 4,
+            },
+        )
+    })
+}
+
 /// A no_std-friendly default sizing: B2-like problems (r = l = s = 1) up to p = 4 with the
 /// extended layout (L = 126, G = 8 001), solves up to q + r = 61 columns with l = 1, models
 /// up to n = 8, and frames of 512 bytes.
@@ -790,8 +1118,9 @@ pub mod sizes {
     pub const R: usize = stat_vector_len_const(1, 1, 1, 4, true);
     /// Gram storage: compensated sums, two packed triangles (8 001 values each).
     pub const G: usize = gram_storage_len(R);
-    /// Solver values: (3 l + 2)(q + r) with l = 1, q + r = 61.
-    pub const X: usize = 5 * 61;
+    /// Solver values: (4 l + 2)(q + r) with l = 1, q + r = 61 (a warm-started solve of the
+    /// recursive estimate keeps the previous solution: [`super::solver_len`]).
+    pub const X: usize = super::solver_len(1, 61, true);
     /// Model values: n = 8, r = l = 1, m = 2 with scheduled C, D: 2(64 + 8 + 8) + 2(8 + 1)
     /// + 2 n + 3 l = 197.
     pub const M: usize = 200;
@@ -817,4 +1146,267 @@ pub fn wire_layout(l: StatsLayout) -> Layout {
 /// pulls), or `None` on overflow.
 pub fn gram_values(dims: &PbsidDims, layout: StatsLayout) -> Option<usize> {
     stat_vector_len(dims, layout).ok().map(packed_len)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::protocol::{decode_frame, encode_frame_version, Packet};
+    use crate::stats::PbsidStats;
+    use std::boxed::Box;
+    use std::vec;
+    use std::vec::Vec;
+
+    type Dev = DefaultDevice<f32>;
+
+    /// Send `msg` (framed in `version`) and return the raw reply frames (COBS-decoded, the
+    /// delimiter removed).
+    fn exchange(dev: &mut Dev, version: u8, seq: u32, msg: &Message<'_>) -> Vec<Vec<u8>> {
+        let mut raw = vec![0u8; 600];
+        let mut out = vec![0u8; 700];
+        let n = encode_frame_version(version, seq, msg, &mut raw, &mut out).unwrap();
+        let mut replies = Vec::new();
+        dev.handle(&out[..n], |f| replies.push(f[..f.len() - 1].to_vec()));
+        replies
+    }
+
+    /// Send a v2 request and decode its one reply with `f`.
+    fn ask<R>(dev: &mut Dev, seq: u32, msg: &Message<'_>, f: impl FnOnce(Packet<'_>) -> R) -> R {
+        let mut r = exchange(dev, VERSION, seq, msg);
+        assert_eq!(r.len(), 1);
+        f(decode_frame(&mut r[0]).unwrap())
+    }
+
+    /// A noise-free LPV-ARX plant: y_k = (0.5 + 0.3 p_{k-1}) y_{k-1} + u_{k-1} - 0.2 u_{k-2},
+    /// p drifting slowly; samples [u, y, p].
+    fn plant(n: usize) -> Vec<[f32; 3]> {
+        let mut s = 0x2545_f491_4f6c_dd1du64;
+        let mut rnd = move || {
+            s ^= s << 13;
+            s ^= s >> 7;
+            s ^= s << 17;
+            (s >> 11) as f64 / (1u64 << 53) as f64 - 0.5
+        };
+        let (mut y1, mut u1, mut u2, mut p1) = (0.0f64, 0.0f64, 0.0f64, 0.0f64);
+        (0..n)
+            .map(|k| {
+                let u = 2.0 * rnd();
+                let p = (k as f64 * 0.003).sin();
+                let y = (0.5 + 0.3 * p1) * y1 + u1 - 0.2 * u2;
+                (y1, u2, u1, p1) = (y, u1, u, p);
+                [u as f32, y as f32, p as f32]
+            })
+            .collect()
+    }
+
+    fn stream(dev: &mut Dev, seq: &mut u32, rows: &[[f32; 3]], first: usize) {
+        for (c, chunk) in rows.chunks(20).enumerate() {
+            let flat: Vec<f32> = chunk.iter().flatten().copied().collect();
+            let mut b = vec![0u8; flat.len() * 4];
+            write_values(&flat, &mut b).unwrap();
+            *seq += 1;
+            let msg = Message::Samples {
+                first: (first + 20 * c) as u32,
+                values: &b,
+            };
+            ask(dev, *seq, &msg, |p| {
+                assert!(matches!(p.msg, Message::Status(_)), "{p:?}")
+            });
+        }
+    }
+
+    fn configure(dev: &mut Dev, seq: &mut u32, forgetting: f32, window: u32) {
+        *seq += 1;
+        let cfg = Config {
+            r: 1,
+            l: 1,
+            s: 1,
+            p: 2,
+            layout: Layout::Extended,
+            forgetting,
+            window,
+        };
+        ask(dev, *seq, &Message::Configure(cfg), |p| {
+            assert_eq!(p.msg, Message::Ack)
+        });
+    }
+
+    /// Host statistics over the same storage as the device's (so the same summation).
+    fn host(lambda: f32, window: bool) -> PbsidStats<f32, Vec<f32>, Vec<f32>, Vec<f32>> {
+        let dims = PbsidDims::new(1, 1, 1, 2).unwrap();
+        let len = stat_vector_len(&dims, StatsLayout::Extended).unwrap();
+        let mut st = PbsidStats::with_storage(
+            dims,
+            StatsLayout::Extended,
+            vec![0.0; window_storage_len(1, 1, 1, 2)],
+            vec![0.0; sizes::G],
+            vec![0.0; len],
+        )
+        .unwrap();
+        let sum = device_summation(len, window, sizes::G).unwrap();
+        let g = Gram::with_summation(len, vec![0.0; sizes::G], sum).unwrap();
+        *st.gram_mut() = g;
+        st.set_forgetting(lambda).unwrap();
+        st
+    }
+
+    /// A version-1 host's Hello: the v2 device answers with a NAK framed as version 1 (so
+    /// the old host can read it) naming version 2; the engine's state is untouched.
+    #[test]
+    fn an_older_host_gets_a_nak_it_can_read() {
+        let mut dev = Box::new(Dev::new());
+        let mut r = exchange(&mut dev, 1, 3, &Message::Hello { version: 1 });
+        assert_eq!(r.len(), 1);
+        let n = crate::protocol::cobs_decode_in_place(&mut r[0]).unwrap();
+        // version 1, seq 0, Error (index 14), WrongVersion (4), detail = 2
+        assert_eq!(&r[0][..n - 4], &[1, 0, 14, 4, 2]);
+        assert_eq!(
+            crate::protocol::crc32(&r[0][..n - 4]).to_le_bytes(),
+            r[0][n - 4..n]
+        );
+        // a newer host (v3): NAK in our framing, detail 2
+        let mut r = exchange(&mut dev, 3, 4, &Message::Hello { version: 3 });
+        let p = decode_frame(&mut r[0]).unwrap();
+        assert_eq!(
+            p.msg,
+            Message::Error(ErrorReply {
+                code: ErrorCode::WrongVersion,
+                detail: 2
+            })
+        );
+        assert_eq!(dev.status().frames_rejected, 2);
+        assert!(!dev.status().configured);
+    }
+
+    /// Forgetting and the sliding window on the device equal the core's statistics on the
+    /// host bit for bit (same storage, same summation).
+    #[test]
+    fn forgetting_and_window_equal_the_core_bit_for_bit() {
+        let rows = plant(1500);
+        for (lambda, window) in [(0.99f32, 0u32), (1.0, 300), (1.0, 0)] {
+            let mut dev = Box::new(Dev::new());
+            let mut seq = 1;
+            configure(&mut dev, &mut seq, lambda, window);
+            stream(&mut dev, &mut seq, &rows, 0);
+            let mut h = host(lambda, window > 0);
+            let mut win = (window > 0).then(|| HalfWindow::new(window as u64).unwrap());
+            for r in &rows {
+                if h.update(&r[..1], &r[1..2], &r[2..]).unwrap() {
+                    if let Some(w) = win.as_mut() {
+                        if w.added() {
+                            rebase_gram(h.gram_mut(), None, w.half()).unwrap();
+                        }
+                    }
+                }
+            }
+            let d = dev.stats().unwrap().gram();
+            assert_eq!(
+                d.packed(),
+                h.gram().packed(),
+                "lambda {lambda} window {window}"
+            );
+            assert_eq!(d.count(), h.gram().count());
+            let st = dev.status();
+            assert_eq!((st.forgetting, st.window), (lambda, window));
+            if window > 0 {
+                // 1498 vectors: the newest half (150) and 1498 mod 150 = 148 more
+                assert_eq!(d.count(), 298);
+                assert_eq!(d.summation(), Summation::Compensated);
+            }
+            if lambda < 1.0 {
+                let w = (1.0 - 0.99f64.powi(1498)) / 0.01;
+                assert!(
+                    (st.weight as f64 - w).abs() < 1e-3 * w,
+                    "{} vs {w}",
+                    st.weight
+                );
+            }
+        }
+    }
+
+    /// The recursive estimate: solves every K samples warm-started, and its parameters and
+    /// one-step errors equal a replay on the host with the same core functions, bit for
+    /// bit; on a noise-free plant in the model class the one-step error is round-off.
+    #[test]
+    fn tracking_equals_a_host_replay_and_predicts() {
+        let rows = plant(1200);
+        let every = 100u32;
+        let req = SolveRequest {
+            lambda_ratio: 0.0,
+            group: false,
+            standardise: true,
+        };
+        let mut dev = Box::new(Dev::new());
+        let mut seq = 1;
+        configure(&mut dev, &mut seq, 0.995, 0);
+        seq += 1;
+        ask(
+            &mut dev,
+            seq,
+            &Message::Track(Track { every, solve: req }),
+            |p| assert_eq!(p.msg, Message::Ack),
+        );
+        stream(&mut dev, &mut seq, &rows, 0);
+        // the host replay: same statistics, a warm solve after every K-th sample
+        let mut h = host(0.995, false);
+        let dims = h.dims();
+        let cols = dims.q().unwrap() + 1;
+        let mut solver = vec![0.0f32; sizes::X];
+        let mut rec = OneStep::<f32>::new();
+        let mut interval = OneStep::<f32>::new();
+        // every one-step error after the first solve, each with the solution then in force
+        let mut all = OneStep::<f32>::new();
+        let mut solved = false;
+        let mut solves = 0;
+        for (k, r) in rows.iter().enumerate() {
+            if h.update(&r[..1], &r[1..2], &r[2..]).unwrap() && solved {
+                rec.add(h.last_vector(), &solver, cols, 1);
+                all.add(h.last_vector(), &solver, cols, 1);
+            }
+            if (k + 1) % every as usize == 0
+                && solve_statistics(h.gram(), &dims, &req, &mut solver, true).is_ok()
+            {
+                solved = true;
+                solves += 1;
+                interval = rec;
+                rec = OneStep::new();
+            }
+        }
+        let est = ask(&mut dev, seq + 1, &Message::GetEstimate, |p| match p.msg {
+            Message::Estimate(e) => (
+                e.solves,
+                e.failures,
+                e.at_sample,
+                e.count,
+                read_value::<f32>(e.sse, 0),
+                read_value::<f32>(e.last_error, 0),
+            ),
+            m => panic!("{m:?}"),
+        });
+        // the interval between the last two solves (samples 1100..1200), the newest error
+        assert_eq!(
+            est,
+            (
+                solves,
+                0,
+                1200,
+                interval.count,
+                interval.sse[0],
+                interval.last[0]
+            )
+        );
+        assert_eq!(interval.count, 100);
+        assert_eq!(solves, 12);
+        assert_eq!(&dev.eng.solver[..cols], &solver[..cols]);
+        // the one-step errors against the output's power: the plant is in the model class
+        // and noise-free, so what is left is f32 round-off of the statistics and solve
+        let power: f32 = rows[100..].iter().map(|r| r[1] * r[1]).sum::<f32>() / 1100.0;
+        assert_eq!(all.count, 1100);
+        let mse = all.sse[0] / all.count as f32;
+        std::println!("one-step mse {mse:e}, output power {power}");
+        assert!(
+            mse < 1e-5 * power,
+            "one-step mse {mse:e}, output power {power}"
+        );
+    }
 }

@@ -61,7 +61,13 @@ use serde::{Deserialize, Serialize};
 use crate::real::Real;
 
 /// Protocol version carried in the first byte of every frame.
-pub const VERSION: u8 = 1;
+pub const VERSION: u8 = 2;
+
+/// Oldest protocol version whose error replies this side can still write: a frame of
+/// version `OLDEST_ANSWERED..VERSION` is answered with a NAK framed in the peer's own
+/// version (the `Error` message and [`ErrorReply`] are encoded the same in every version), so
+/// an older host learns which version the device speaks instead of timing out.
+pub const OLDEST_ANSWERED: u8 = 1;
 
 /// Bytes a frame costs beyond its postcard body: version byte and CRC.
 pub const FRAME_OVERHEAD: usize = 1 + 4;
@@ -207,7 +213,8 @@ pub enum ErrorCode {
     Truncated,
     /// The CRC-32 does not match.
     BadCrc,
-    /// The version byte is not [`VERSION`]; `detail` carries the receiver's version.
+    /// The version byte is not [`VERSION`]; `detail` carries the receiver's version (and the
+    /// NAK's own version byte is the peer's when the peer is older: see [`OLDEST_ANSWERED`]).
     WrongVersion,
     /// A message variant this side does not know (a newer peer).
     UnknownMessage,
@@ -225,7 +232,9 @@ pub enum ErrorCode {
     SampleRejected,
     /// A value slice whose length is not a whole number of values/samples.
     BadLength,
-    /// A feature this device does not have (e.g. a forgetting factor other than 1).
+    /// A feature this device does not have, or settings it cannot combine (`detail`: 1
+    /// forgetting factor outside (0, 1], 2 forgetting together with a sliding window, 3 a
+    /// window shorter than 2 vectors, 4 tracking needs solver storage, see [`Info`]).
     Unsupported,
     /// The on-device solve failed (singular, no convergence, no data).
     SolveFailed,
@@ -309,6 +318,13 @@ pub mod caps {
     pub const SOLVE: u32 = 2;
     /// Runs a pushed model's one-step-ahead predictor on the streamed samples.
     pub const PREDICT: u32 = 4;
+    /// Exponential forgetting ([`super::Config::forgetting`] < 1), protocol 2.
+    pub const FORGETTING: u32 = 8;
+    /// Sliding window of statistic vectors ([`super::Config::window`]), protocol 2.
+    pub const WINDOW: u32 = 16;
+    /// The recursive estimate ([`super::Message::Track`], [`super::Message::Estimate`]),
+    /// protocol 2.
+    pub const TRACK: u32 = 32;
 }
 
 /// What a device is (reply to [`Message::Hello`]). Capacities are in values of the
@@ -351,14 +367,18 @@ pub struct Config {
     pub p: u8,
     /// Statistics layout.
     pub layout: Layout,
-    /// Exponential forgetting factor; this version supports only 1.0 (no forgetting: the
-    /// statistics stay mergeable and equal to a file fit), others get
-    /// [`ErrorCode::Unsupported`].
+    /// Exponential forgetting factor lambda in (0, 1] per statistic vector: G <- lambda G +
+    /// s_k s_k^T ([`crate::Gram::set_forgetting`]). 1: plain sums (mergeable, equal to a file
+    /// fit); outside (0, 1]: [`ErrorCode::Unsupported`] (detail 1).
     pub forgetting: f32,
+    /// Sliding window: the statistics hold the last N/2 + 1 ..= N statistic vectors (N even,
+    /// an odd N rounded down; [`crate::sliding`]). 0: no window (the whole stream). Exclusive
+    /// with forgetting < 1 ([`ErrorCode::Unsupported`] detail 2); N = 1 is detail 3.
+    pub window: u32,
 }
 
 /// The device's state (reply to [`Message::GetStatus`] and to [`Message::Samples`]).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct Status {
     /// Whether a configuration is active.
     pub configured: bool,
@@ -385,6 +405,15 @@ pub struct Status {
     pub frames_rejected: u32,
     /// Whether a pushed model's predictor runs.
     pub model_loaded: bool,
+    /// The configured forgetting factor (1 when not configured).
+    pub forgetting: f32,
+    /// The configured sliding window (0: none).
+    pub window: u32,
+    /// Effective number of vectors in the statistics: sum of lambda^age (= `windows` without
+    /// forgetting; with a window, the vectors in it).
+    pub weight: f32,
+    /// Solves made by the recursive estimate since the configuration ([`Message::Track`]).
+    pub solves: u32,
 }
 
 /// An on-device solve of problem (13): regress y_{k+p} on [z_k^p; u_{k+p}] from the
@@ -421,6 +450,40 @@ pub struct SolveSummary {
     pub kkt: f32,
     /// Objective value.
     pub objective: f32,
+}
+
+/// The recursive estimate (request [`Message::Track`]): solve every `every` applied samples,
+/// warm-started from the last solution, and run the one-step predictor of the solution in
+/// force on every new statistic vector.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct Track {
+    /// Samples between solves (0: tracking off).
+    pub every: u32,
+    /// The solve to repeat (lambda_ratio 0: the least-squares PBSID/VARX regression of
+    /// problem (13)).
+    pub solve: SolveRequest,
+}
+
+/// The recursive estimate's record (reply to [`Message::GetEstimate`]). The coefficients of
+/// the last successful solve are pulled with [`Message::PullSolution`].
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct Estimate<'a> {
+    /// Successful tracking solves since the configuration.
+    pub solves: u32,
+    /// Tracking solves that failed (the previous solution stays in force).
+    pub failures: u32,
+    /// Stream index of the next sample when the last solve ran (0: none yet).
+    pub at_sample: u32,
+    /// Summary of the last successful solve (all zero before the first).
+    pub summary: SolveSummary,
+    /// One-step predictions the previous solution made over its whole interval (between the
+    /// last two solves): out of sample, each vector was predicted before a solve saw it.
+    pub count: u32,
+    /// Their sum of squared errors per output (l floats).
+    pub sse: &'a [u8],
+    /// The newest one-step prediction error y_{k+p} - Theta [z_k^p; u_{k+p}] per output (l
+    /// floats).
+    pub last_error: &'a [u8],
 }
 
 /// A chunk of a model pushed to the device for its one-step-ahead predictor. The values,
@@ -528,6 +591,13 @@ pub enum Message<'a> {
     GetPrediction,
     /// Reply: the predictor's record.
     Prediction(Prediction<'a>),
+    /// Request (protocol 2): start, change or stop the recursive estimate; reply
+    /// [`Message::Ack`].
+    Track(Track),
+    /// Request (protocol 2): reply [`Message::Estimate`].
+    GetEstimate,
+    /// Reply (protocol 2): the recursive estimate's record.
+    Estimate(Estimate<'a>),
 }
 
 impl Message<'_> {
@@ -545,6 +615,8 @@ impl Message<'_> {
                 | Message::PushModel(_)
                 | Message::Reset
                 | Message::GetPrediction
+                | Message::Track(_)
+                | Message::GetEstimate
         )
     }
 }
@@ -574,10 +646,23 @@ pub fn encode_frame(
     raw: &mut [u8],
     out: &mut [u8],
 ) -> Result<usize, EncodeError> {
+    encode_frame_version(VERSION, seq, msg, raw, out)
+}
+
+/// [`encode_frame`] with another version byte: what a device uses to NAK an older peer in
+/// that peer's own framing ([`OLDEST_ANSWERED`]); only messages whose encoding did not
+/// change between the versions (the `Error` reply) may be sent this way.
+pub fn encode_frame_version(
+    version: u8,
+    seq: u32,
+    msg: &Message<'_>,
+    raw: &mut [u8],
+    out: &mut [u8],
+) -> Result<usize, EncodeError> {
     if raw.len() < FRAME_OVERHEAD + 2 {
         return Err(EncodeError::BufferTooSmall);
     }
-    raw[0] = VERSION;
+    raw[0] = version;
     let avail = raw.len() - 4;
     let body = postcard::to_slice(&Packet { seq, msg: *msg }, &mut raw[1..avail])
         .map_err(|_| EncodeError::BufferTooSmall)?
@@ -593,11 +678,48 @@ pub fn encode_frame(
     Ok(enc + 1)
 }
 
-/// Decode one frame (its COBS bytes, without the delimiter) in place. Every invalid frame
-/// is rejected with its reason: [`ErrorCode::BadCobs`], [`ErrorCode::Truncated`],
-/// [`ErrorCode::BadCrc`], [`ErrorCode::WrongVersion`], [`ErrorCode::UnknownMessage`] or
-/// [`ErrorCode::Malformed`] ([`ErrorCode::Oversize`] comes from the [`Deframer`]).
-pub fn decode_frame(buf: &mut [u8]) -> Result<Packet<'_>, ErrorCode> {
+/// Two peers that speak different protocol versions (a frame with a valid CRC and another
+/// version byte): the typed form of [`ErrorCode::WrongVersion`], naming both versions.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct VersionMismatch {
+    /// This side's version ([`VERSION`]).
+    pub ours: u8,
+    /// The version byte of the peer's frame.
+    pub theirs: u8,
+}
+
+impl core::fmt::Display for VersionMismatch {
+    fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
+        write!(
+            f,
+            "unsupported protocol version: the peer speaks version {}, this side version {}",
+            self.theirs, self.ours
+        )
+    }
+}
+
+/// Why [`decode_frame_checked`] rejected a frame.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Rejected {
+    /// A frame-level reason ([`ErrorCode::is_frame_error`]), never `WrongVersion`.
+    Frame(ErrorCode),
+    /// A valid frame of another protocol version.
+    Version(VersionMismatch),
+}
+
+impl Rejected {
+    /// The reason as the wire carries it.
+    pub fn code(self) -> ErrorCode {
+        match self {
+            Rejected::Frame(c) => c,
+            Rejected::Version(_) => ErrorCode::WrongVersion,
+        }
+    }
+}
+
+/// COBS-decode `buf` in place and check length, CRC and version: the raw length, or why
+/// not (for a version mismatch, `buf[0]` then holds the peer's version byte).
+fn unstuff_and_check(buf: &mut [u8]) -> Result<usize, ErrorCode> {
     let n = cobs_decode_in_place(buf)?;
     let raw = &buf[..n];
     if n < FRAME_OVERHEAD + 2 {
@@ -611,7 +733,11 @@ pub fn decode_frame(buf: &mut [u8]) -> Result<Packet<'_>, ErrorCode> {
     if data[0] != VERSION {
         return Err(ErrorCode::WrongVersion);
     }
-    let body = &data[1..];
+    Ok(n)
+}
+
+/// The postcard body of a checked frame.
+fn parse_body(body: &[u8]) -> Result<Packet<'_>, ErrorCode> {
     // the variant index follows the seq varint: an index past the last known variant is a
     // message of a newer peer, not a corruption (the CRC passed)
     let mut at = 0;
@@ -627,8 +753,30 @@ pub fn decode_frame(buf: &mut [u8]) -> Result<Packet<'_>, ErrorCode> {
     }
 }
 
+/// Decode one frame (its COBS bytes, without the delimiter) in place. Every invalid frame
+/// is rejected with its reason: [`ErrorCode::BadCobs`], [`ErrorCode::Truncated`],
+/// [`ErrorCode::BadCrc`], [`ErrorCode::WrongVersion`], [`ErrorCode::UnknownMessage`] or
+/// [`ErrorCode::Malformed`] ([`ErrorCode::Oversize`] comes from the [`Deframer`]).
+pub fn decode_frame(buf: &mut [u8]) -> Result<Packet<'_>, ErrorCode> {
+    let n = unstuff_and_check(buf)?;
+    parse_body(&buf[1..n - 4])
+}
+
+/// [`decode_frame`], with a frame of another version reported as a [`VersionMismatch`]
+/// naming the peer's version (what a host shows when it meets an older or newer device).
+pub fn decode_frame_checked(buf: &mut [u8]) -> Result<Packet<'_>, Rejected> {
+    match unstuff_and_check(buf) {
+        Ok(n) => parse_body(&buf[1..n - 4]).map_err(Rejected::Frame),
+        Err(ErrorCode::WrongVersion) => Err(Rejected::Version(VersionMismatch {
+            ours: VERSION,
+            theirs: buf[0],
+        })),
+        Err(c) => Err(Rejected::Frame(c)),
+    }
+}
+
 /// Number of [`Message`] variants this version knows.
-pub const MESSAGE_VARIANTS: u32 = 17;
+pub const MESSAGE_VARIANTS: u32 = 20;
 
 /// A postcard varint (LEB128, at most 5 bytes for a u32) at `*at`.
 fn read_varint(b: &[u8], at: &mut usize) -> Result<u32, ErrorCode> {
@@ -873,13 +1021,149 @@ mod tests {
         let n = encode_frame(1, &Message::Reset, &mut raw, &mut out).unwrap();
         assert_eq!(
             &out[..n],
-            &[0x08, 0x01, 0x01, 0x0c, 0x4f, 0xce, 0x2e, 0xee, 0x00]
+            &[0x08, 0x02, 0x01, 0x0c, 0x16, 0x70, 0x68, 0xec, 0x00]
         );
-        let n = encode_frame(5, &Message::Hello { version: 1 }, &mut raw, &mut out).unwrap();
+        let n = encode_frame(5, &Message::Hello { version: VERSION }, &mut raw, &mut out).unwrap();
         assert_eq!(
             &out[..n],
-            &[0x03, 0x01, 0x05, 0x06, 0x01, 0x04, 0x4a, 0x34, 0xe8, 0x00]
+            &[0x03, 0x02, 0x05, 0x06, 0x02, 0x50, 0xb4, 0x88, 0x63, 0x00]
         );
+        let cfg = Config {
+            r: 1,
+            l: 1,
+            s: 1,
+            p: 3,
+            layout: Layout::Extended,
+            forgetting: 0.5,
+            window: 1000,
+        };
+        // forgetting 0.5 (f32 LE 00 00 00 3f), window 1000 (varint e8 07)
+        let n = encode_frame(2, &Message::Configure(cfg), &mut raw, &mut out).unwrap();
+        assert_eq!(
+            &out[..n],
+            &[
+                0x09, 0x02, 0x02, 0x02, 0x01, 0x01, 0x01, 0x03, 0x01, 0x01, 0x01, 0x08, 0x3f, 0xe8,
+                0x07, 0xbe, 0x74, 0x89, 0x8a, 0x00
+            ]
+        );
+    }
+
+    /// A version-1 frame (as a version-1 host or device writes it: version byte 1, the same
+    /// postcard body) reaching this version.
+    fn v1_frame(seq: u32, msg: &Message<'_>) -> std::vec::Vec<u8> {
+        let mut raw = [0u8; 128];
+        let mut out = [0u8; 140];
+        let n = encode_frame_version(1, seq, msg, &mut raw, &mut out).unwrap();
+        out[..n - 1].to_vec()
+    }
+
+    /// Protocol 2 meets protocol 1, both ways: the frame is refused before any field is
+    /// read, with a typed error naming both versions.
+    #[test]
+    fn other_versions_get_a_typed_error_naming_both() {
+        // a v1 host's Hello reaching a v2 decoder
+        let mut f = v1_frame(7, &Message::Hello { version: 1 });
+        let e = decode_frame_checked(&mut f).unwrap_err();
+        assert_eq!(e, Rejected::Version(VersionMismatch { ours: 2, theirs: 1 }));
+        assert_eq!(e.code(), ErrorCode::WrongVersion);
+        let text = std::format!("{}", VersionMismatch { ours: 2, theirs: 1 });
+        assert!(
+            text.contains("version 1") && text.contains("version 2"),
+            "{text}"
+        );
+        assert!(text.contains("unsupported"), "{text}");
+        // the plain decoder gives the wire reason
+        let mut f = v1_frame(7, &Message::Hello { version: 1 });
+        assert_eq!(decode_frame(&mut f), Err(ErrorCode::WrongVersion));
+        // a v1 device's NAK (its version in the frame and in `detail`) reaching a v2 host
+        let nak = Message::Error(ErrorReply {
+            code: ErrorCode::WrongVersion,
+            detail: 1,
+        });
+        let mut f = v1_frame(0, &nak);
+        assert_eq!(
+            decode_frame_checked(&mut f),
+            Err(Rejected::Version(VersionMismatch {
+                ours: VERSION,
+                theirs: 1
+            }))
+        );
+        // a newer peer (v3) is named too
+        let mut raw = [0u8; 64];
+        let mut out = [0u8; 80];
+        let n = encode_frame_version(3, 1, &Message::Reset, &mut raw, &mut out).unwrap();
+        assert_eq!(
+            decode_frame_checked(&mut out[..n - 1]),
+            Err(Rejected::Version(VersionMismatch {
+                ours: VERSION,
+                theirs: 3
+            }))
+        );
+        // the Error reply a v2 device NAKs a v1 host with, framed as version 1: the body
+        // decodes with the version-1 layout of `Error` (index 14, code, detail)
+        let f = v1_frame(
+            0,
+            &Message::Error(ErrorReply {
+                code: ErrorCode::WrongVersion,
+                detail: VERSION as u32,
+            }),
+        );
+        let mut b = f.clone();
+        let n = cobs_decode_in_place(&mut b).unwrap();
+        assert_eq!(&b[..n - 4], &[1, 0, 14, 4, VERSION]);
+    }
+
+    /// Version 2's new messages round-trip, and a Configure with forgetting and a window.
+    #[test]
+    fn version_two_messages_round_trip() {
+        let sum = SolveSummary {
+            columns: 21,
+            outputs: 1,
+            lambda: 0.5,
+            lambda_max: 2.0,
+            iterations: 7,
+            converged: true,
+            active: 3,
+            kkt: 1e-7,
+            objective: -4.0,
+        };
+        let sse = [0u8, 0, 128, 63];
+        let msgs = [
+            Message::Track(Track {
+                every: 100,
+                solve: SolveRequest {
+                    lambda_ratio: 0.0,
+                    group: false,
+                    standardise: true,
+                },
+            }),
+            Message::GetEstimate,
+            Message::Estimate(Estimate {
+                solves: 3,
+                failures: 1,
+                at_sample: 300,
+                summary: sum,
+                count: 99,
+                sse: &sse,
+                last_error: &sse,
+            }),
+            Message::Configure(Config {
+                r: 1,
+                l: 2,
+                s: 3,
+                p: 4,
+                layout: Layout::Plain,
+                forgetting: 0.999,
+                window: 5000,
+            }),
+        ];
+        for m in msgs {
+            let mut raw = [0u8; 128];
+            let mut out = [0u8; 140];
+            let n = encode_frame(9, &m, &mut raw, &mut out).unwrap();
+            let mut f = out[..n - 1].to_vec();
+            assert_eq!(decode_frame(&mut f).unwrap().msg, m);
+        }
     }
 
     #[test]

@@ -221,6 +221,24 @@ impl<T: Real, S: AsRef<[T]> + AsMut<[T]>> Gram<T, S> {
         }
     }
 
+    /// The storage split for a sliding window kept beside the sums in the same array
+    /// ([`crate::sliding`], the device's window): totals, their low parts (empty for
+    /// [`Summation::Plain`]) and the spare values after what the summation uses.
+    pub(crate) fn storage_parts(&mut self) -> (&mut [T], &mut [T], &mut [T]) {
+        let n = packed_len(self.dim);
+        let used = Self::storage_needed(self.dim, self.summation);
+        let (sums, spare) = self.data.as_mut().split_at_mut(used);
+        let (hi, lo) = sums.split_at_mut(n);
+        (hi, lo, spare)
+    }
+
+    /// Set the vector count (and the weight: no forgetting) after the sums were rebased by
+    /// [`crate::sliding`].
+    pub(crate) fn set_count(&mut self, count: u64) {
+        self.count = count;
+        self.weight = count as f64;
+    }
+
     /// Vector length.
     pub fn dim(&self) -> usize {
         self.dim
@@ -788,6 +806,12 @@ where
     /// Mutable access (merging statistics from another source).
     pub fn gram_mut(&mut self) -> &mut Gram<T, SG> {
         &mut self.gram
+    }
+
+    /// The statistic vector s_k of the last window accumulated ([`write_stat_vector`]; its
+    /// head is [z_k^p; u_{k+p}; y_{k+p}]): what a recursive estimate predicts from.
+    pub fn last_vector(&self) -> &[T] {
+        &self.scratch.as_ref()[..self.len]
     }
 
     /// Exponential forgetting of the statistics ([`Gram::set_forgetting`]): lambda in

@@ -101,6 +101,7 @@ fn exactly_once_and_zero_allocations() {
         p: 3,
         layout: Layout::Extended,
         forgetting: 1.0,
+        window: 0,
     };
 
     counting_alloc::start();
@@ -231,6 +232,7 @@ fn configuration_errors_are_values() {
                 p: 3,
                 layout: Layout::Plain,
                 forgetting: 1.0,
+                window: 0,
             },
             ErrorCode::BadConfig,
         ),
@@ -242,6 +244,7 @@ fn configuration_errors_are_values() {
                 p: 9,
                 layout: Layout::Extended,
                 forgetting: 1.0,
+                window: 0,
             },
             ErrorCode::Capacity,
         ),
@@ -252,7 +255,33 @@ fn configuration_errors_are_values() {
                 s: 1,
                 p: 2,
                 layout: Layout::Extended,
+                forgetting: 1.5,
+                window: 0,
+            },
+            ErrorCode::Unsupported,
+        ),
+        (
+            // protocol 2: forgetting and a sliding window are alternatives
+            Config {
+                r: 1,
+                l: 1,
+                s: 1,
+                p: 2,
+                layout: Layout::Extended,
                 forgetting: 0.99,
+                window: 100,
+            },
+            ErrorCode::Unsupported,
+        ),
+        (
+            Config {
+                r: 1,
+                l: 1,
+                s: 1,
+                p: 2,
+                layout: Layout::Extended,
+                forgetting: 1.0,
+                window: 1,
             },
             ErrorCode::Unsupported,
         ),

@@ -32,7 +32,7 @@ fn is_frame_reason(c: ErrorCode) -> bool {
 
 /// Messages with arbitrary fields (value slices from `bytes`).
 fn message(kind: u8, a: u32, b: u16, f: f32, bytes: &[u8]) -> Message<'_> {
-    match kind % 17 {
+    match kind % 20 {
         0 => Message::Hello { version: a as u8 },
         1 => Message::GetStatus,
         2 => Message::Configure(Config {
@@ -46,6 +46,7 @@ fn message(kind: u8, a: u32, b: u16, f: f32, bytes: &[u8]) -> Message<'_> {
                 Layout::Extended
             },
             forgetting: f,
+            window: 0,
         }),
         3 => Message::Samples {
             first: a,
@@ -96,6 +97,10 @@ fn message(kind: u8, a: u32, b: u16, f: f32, bytes: &[u8]) -> Message<'_> {
             frames_ok: a,
             frames_rejected: b as u32,
             model_loaded: false,
+            forgetting: f,
+            window: b as u32,
+            weight: f,
+            solves: a,
         }),
         14 => Message::Prediction(lpvid::protocol::Prediction {
             count: a,
@@ -112,6 +117,34 @@ fn message(kind: u8, a: u32, b: u16, f: f32, bytes: &[u8]) -> Message<'_> {
             active: b as u32,
             kkt: f,
             objective: f,
+        }),
+        16 => Message::Track(lpvid::protocol::Track {
+            every: a,
+            solve: SolveRequest {
+                lambda_ratio: f,
+                group: a & 1 == 1,
+                standardise: a & 2 == 2,
+            },
+        }),
+        17 => Message::GetEstimate,
+        18 => Message::Estimate(lpvid::protocol::Estimate {
+            solves: a,
+            failures: b as u32,
+            at_sample: a ^ 5,
+            summary: lpvid::protocol::SolveSummary {
+                columns: a,
+                outputs: b as u8,
+                lambda: f,
+                lambda_max: f,
+                iterations: a,
+                converged: false,
+                active: b as u32,
+                kkt: f,
+                objective: f,
+            },
+            count: a,
+            sse: bytes,
+            last_error: bytes,
         }),
         _ => Message::Info(lpvid::protocol::Info {
             version: 1,
@@ -146,10 +179,24 @@ fn variant_count_matches_the_decoder() {
     // the last variant encodes as index MESSAGE_VARIANTS - 1 (the decoder's bound)
     let f = encode(
         1,
-        &Message::Prediction(lpvid::protocol::Prediction {
+        &Message::Estimate(lpvid::protocol::Estimate {
+            solves: 0,
+            failures: 0,
+            at_sample: 0,
+            summary: lpvid::protocol::SolveSummary {
+                columns: 0,
+                outputs: 0,
+                lambda: 0.0,
+                lambda_max: 0.0,
+                iterations: 0,
+                converged: false,
+                active: 0,
+                kkt: 0.0,
+                objective: 0.0,
+            },
             count: 0,
             sse: &[],
-            last: &[],
+            last_error: &[],
         }),
     );
     let mut body = f[..f.len() - 1].to_vec();
@@ -274,7 +321,7 @@ proptest! {
     fn device_survives_arbitrary_requests(reqs in proptest::collection::vec(
         (any::<u8>(), any::<u32>(), any::<u16>(), any::<f32>(), proptest::collection::vec(any::<u8>(), 0..300)), 1..20)) {
         let mut dev = Box::new(DefaultDevice::<f32>::new());
-        let cfg = encode(1, &Message::Configure(Config { r: 1, l: 1, s: 1, p: 2, layout: Layout::Extended, forgetting: 1.0 }));
+        let cfg = encode(1, &Message::Configure(Config { r: 1, l: 1, s: 1, p: 2, layout: Layout::Extended, forgetting: 1.0, window: 0 }));
         dev.handle(&cfg, |_| {});
         for (i, (kind, a, b, f, bytes)) in reqs.iter().enumerate() {
             let msg = message(*kind, *a, *b, *f, bytes);

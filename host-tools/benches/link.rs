@@ -82,6 +82,10 @@ fn ack_only(port: &mut TTYPort, stop: &AtomicBool) {
                         frames_ok: 0,
                         frames_rejected: 0,
                         model_loaded: false,
+                        forgetting: 1.0,
+                        window: 0,
+                        weight: 0.0,
+                        solves: 0,
                     })
                 }
                 Message::Reset => {
@@ -154,6 +158,7 @@ fn bench_link(c: &mut Criterion) {
         p: P as u8,
         layout: lpvid::protocol::Layout::Extended,
         forgetting: 1.0,
+        window: 0,
     };
     let n = encode_frame(1, &Message::Configure(cfg), &mut raw, &mut out).unwrap();
     let configure = out[..n].to_vec();

@@ -1,21 +1,23 @@
 //! `lpvid device`: talk to a device over a serial port (info, stream a file, pull the
 //! statistics and identify from them through [`crate::pipeline::identify_from_stats`], solve
-//! on the device, push a model, reset).
+//! on the device, push a model, reset, watch the device's recursive estimate).
 
 use std::io::Write;
 use std::path::PathBuf;
 use std::time::{Duration, Instant};
 
 use clap::{Args, Subcommand};
-use lpvid::protocol::{Info, SolveRequest};
+use lpvid::protocol::{Info, SolveRequest, Track};
 use lpvid::{packed_len, stat_vector_len, PbsidDims, StatsLayout};
 use serde_json::{json, Value};
 
 use super::files::{check_paths, Outputs};
 use super::{CliError, Ui};
 use crate::data::Dataset;
+use crate::link::watch::{WatchHistory, WatchRecord};
 use crate::link::{
-    compare_with_file, extended_gram, open_port, sample_rows, Link, LinkError, LinkOptions,
+    compare_as_device, extended_gram, open_port, replay_tracking, sample_rows, Accumulation, Link,
+    LinkError, LinkOptions, ReplayPoint,
 };
 use crate::lpvss::Signals;
 use crate::model::{ModelFile, ModelKind, SignalMap};
@@ -57,6 +59,72 @@ enum DeviceAction {
     Push(PushArgs),
     /// Clear the device's statistics and sample index (configuration and model stay).
     Reset,
+    /// Configure, start the device's recursive estimate (a solve every --every samples,
+    /// warm-started) and stream a file, showing the estimate as it goes: a progress line,
+    /// a plot file refreshed now and then, or JSON lines (--json).
+    Watch(WatchArgs),
+}
+
+/// How the device accumulates (protocol 2).
+#[derive(Debug, Args)]
+struct AccArgs {
+    /// Exponential forgetting factor lambda in (0, 1] per statistic vector (memory about
+    /// 1/(1 - lambda) vectors; 1: none).
+    #[arg(long, value_name = "LAMBDA", default_value_t = 1.0)]
+    forgetting: f32,
+    /// Sliding window: keep the last N/2 .. N - 1 statistic vectors (0: the whole stream;
+    /// exclusive with --forgetting).
+    #[arg(long, value_name = "N", default_value_t = 0)]
+    window: u32,
+}
+
+impl AccArgs {
+    fn accumulation(&self) -> Accumulation {
+        Accumulation {
+            forgetting: self.forgetting,
+            window: self.window,
+        }
+    }
+}
+
+#[derive(Debug, Args)]
+struct WatchArgs {
+    /// Data file (CSV: u1.., y1.., p1..).
+    file: PathBuf,
+    /// Past window p.
+    #[arg(long, default_value_t = 3)]
+    past: usize,
+    /// Accumulate the plain statistics of problem (13) only.
+    #[arg(long)]
+    plain: bool,
+    #[command(flatten)]
+    acc: AccArgs,
+    /// Samples between the device's solves.
+    #[arg(long, value_name = "K", default_value_t = 500)]
+    every: u32,
+    /// lambda as a fraction of lambda_max (0: the least-squares PBSID/VARX regression).
+    #[arg(long, default_value_t = 0.0)]
+    lambda_ratio: f32,
+    /// l2,1 (group) penalty instead of l1.
+    #[arg(long)]
+    group: bool,
+    /// Penalise raw instead of standardised coefficients.
+    #[arg(long)]
+    raw: bool,
+    /// Write an SVG plot of the one-step error and the coefficients here, refreshed every
+    /// --plot-every reports and at the end.
+    #[arg(long, value_name = "FILE.svg")]
+    plot: Option<PathBuf>,
+    /// Reports between plot refreshes.
+    #[arg(long, default_value_t = 10)]
+    plot_every: usize,
+    /// Replay the estimate on the host in the device's float type with the core's code and
+    /// fail unless every report equals it bit for bit.
+    #[arg(long)]
+    compare: bool,
+    /// Largest number of samples per frame (default: as many as fit).
+    #[arg(long, default_value_t = 0)]
+    batch: usize,
 }
 
 #[derive(Debug, Args)]
@@ -77,6 +145,8 @@ struct StreamArgs {
     /// Largest number of samples per frame (default: as many as fit).
     #[arg(long, default_value_t = 0)]
     batch: usize,
+    #[command(flatten)]
+    acc: AccArgs,
 }
 
 #[derive(Debug, Args)]
@@ -145,6 +215,7 @@ fn w(out: &mut dyn Write, s: String) -> Result<(), CliError> {
 enum Local {
     None,
     Stream(Dataset, Signals, PbsidDims),
+    Watch(Dataset, Signals, PbsidDims),
     Push(ModelFile),
     Pull(Option<(Dataset, Signals)>),
 }
@@ -159,6 +230,20 @@ fn local_inputs(a: &DeviceArgs) -> Result<Local, CliError> {
             let dims = PbsidDims::new(sig.u.ncols(), sig.y.ncols(), sig.p.ncols(), s.past)
                 .map_err(|e| CliError::Invalid(format!("{}: {e}", ds.source)))?;
             Local::Stream(ds, sig, dims)
+        }
+        DeviceAction::Watch(wa) => {
+            if let Some(plot) = &wa.plot {
+                check_paths(
+                    &[("--port", a.port.as_path()), ("FILE", wa.file.as_path())],
+                    &[("--plot", plot.as_path())],
+                )?;
+            }
+            let ds = Dataset::read_csv(&wa.file)?;
+            let map = SignalMap::default_for(&ds)?;
+            let sig = map.evaluate(&ds)?;
+            let dims = PbsidDims::new(sig.u.ncols(), sig.y.ncols(), sig.p.ncols(), wa.past)
+                .map_err(|e| CliError::Invalid(format!("{}: {e}", ds.source)))?;
+            Local::Watch(ds, sig, dims)
         }
         DeviceAction::Push(p) => {
             let mf = super::diagnose::read_model(&p.model)?;
@@ -211,6 +296,7 @@ fn link_options(a: &DeviceArgs) -> LinkOptions {
         retries: a.retries,
         batch: match &a.action {
             DeviceAction::Stream(s) => s.batch,
+            DeviceAction::Watch(s) => s.batch,
             _ => 0,
         },
     }
@@ -291,11 +377,20 @@ pub(super) fn run(a: &DeviceArgs, ui: Ui, out: &mut dyn Write) -> Result<(), Cli
             link.reset().map_err(link_err)?;
             Ok(json!({"command": "device reset"}))
         }
+        DeviceAction::Watch(wa) => {
+            let Local::Watch(ds, sig, dims) = local else {
+                unreachable!("watch reads its file first")
+            };
+            watch_cmd(&mut link, wa, &info, (&ds, &sig, dims), a.json, ui, out)
+        }
     }?;
     let ls = link.stats();
     let mut result = result;
     result["link"] = serde_json::to_value(ls).unwrap_or(Value::Null);
-    if a.json {
+    if a.json && matches!(a.action, DeviceAction::Watch(_)) {
+        // JSON lines: the summary is the last line
+        w(out, serde_json::to_string(&result).unwrap_or_default())?;
+    } else if a.json {
         w(
             out,
             serde_json::to_string_pretty(&result).unwrap_or_default(),
@@ -344,7 +439,8 @@ fn stream_cmd(
         }
         st.next_sample
     } else {
-        link.configure(&dims, layout).map_err(link_err)?;
+        link.configure_with(&dims, layout, s.acc.accumulation())
+            .map_err(link_err)?;
         0
     };
     let rows = sample_rows(sig);
@@ -426,6 +522,13 @@ fn pull_cmd(
                 "--stats-out needs the extended statistics: stream without --plain".into(),
             ));
         }
+        if st.forgetting != 1.0 || st.window != 0 {
+            return Err(CliError::Invalid(
+                "--stats-out writes mergeable sums: statistics with forgetting or a sliding \
+                 window do not merge by addition (stream with --forgetting 1 --window 0)"
+                    .into(),
+            ));
+        }
         let merged = crate::statistics::Statistics::from_packed(dims, &vals, st.windows, 1)?;
         outputs.bytes(path, &merged.to_bytes())?;
         res["stats_out"] = json!(path.display().to_string());
@@ -456,7 +559,12 @@ fn pull_cmd(
         } else {
             None
         };
-        let cmp = compare_with_file(
+        // the host replays the device's accumulation: its forgetting, window and storage
+        let acc = Accumulation {
+            forgetting: st.forgetting,
+            window: st.window,
+        };
+        let cmp = compare_as_device(
             &vals,
             st.windows,
             info.float_bytes,
@@ -464,6 +572,8 @@ fn pull_cmd(
             &dims,
             layout,
             with_model,
+            acc,
+            2 * info.gram_cap as usize,
         )
         .map_err(crate::Error::from)?;
         res["compare"] = serde_json::to_value(&cmp).unwrap_or(Value::Null);
@@ -498,6 +608,198 @@ fn pull_cmd(
     }
     outputs.commit()?;
     Ok(res)
+}
+
+/// `lpvid device watch`: configure, start tracking, stream, report every new solve.
+#[allow(clippy::too_many_arguments)]
+fn watch_cmd(
+    link: &mut Link<serialport::TTYPort>,
+    wa: &WatchArgs,
+    info: &Info,
+    (ds, sig, dims): (&Dataset, &Signals, PbsidDims),
+    json_lines: bool,
+    ui: Ui,
+    out: &mut dyn Write,
+) -> Result<Value, CliError> {
+    let layout = if wa.plain {
+        StatsLayout::Plain
+    } else {
+        StatsLayout::Extended
+    };
+    let acc = wa.acc.accumulation();
+    if wa.every == 0 {
+        return Err(CliError::Invalid("--every must be at least 1".into()));
+    }
+    let track = Track {
+        every: wa.every,
+        solve: SolveRequest {
+            lambda_ratio: wa.lambda_ratio,
+            group: wa.group,
+            standardise: !wa.raw,
+        },
+    };
+    // the host's replay first: a configuration the device cannot hold fails here too
+    let replay: Option<Vec<ReplayPoint>> = if wa.compare {
+        let (g, x) = (2 * info.gram_cap as usize, info.solver_cap as usize);
+        let pts = if info.float_bytes == 4 {
+            replay_tracking::<f32>(sig, dims.p, layout, acc, g, x, &track)
+        } else {
+            replay_tracking::<f64>(sig, dims.p, layout, acc, g, x, &track)
+        }
+        .map_err(crate::Error::from)?;
+        Some(pts)
+    } else {
+        None
+    };
+    link.configure_with(&dims, layout, acc).map_err(link_err)?;
+    link.track(track).map_err(link_err)?;
+    let rows = sample_rows(sig);
+    let per = dims.r + dims.l + dims.s;
+    let n = sig.len();
+    let bar = if !json_lines && ui.progress() {
+        let b = indicatif::ProgressBar::new(n as u64);
+        b.set_style(
+            indicatif::ProgressStyle::with_template(
+                "{bar:30} {pos}/{len} samples {per_sec} | {msg}",
+            )
+            .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar()),
+        );
+        b
+    } else {
+        indicatif::ProgressBar::hidden()
+    };
+    let mut history = WatchHistory::default();
+    let mut mismatches: Vec<String> = Vec::new();
+    let mut compared = 0usize;
+    let mut io_err: Option<CliError> = None;
+    let t0 = Instant::now();
+    let st = link
+        .watch(
+            &rows,
+            per,
+            0,
+            |d, _| bar.set_position(d as u64),
+            |rec: &WatchRecord| {
+                bar.set_message(record_line(rec));
+                if let Some(pts) = &replay {
+                    compared += 1;
+                    if let Some(why) = differs(rec, pts) {
+                        mismatches.push(why);
+                    }
+                }
+                if json_lines {
+                    let mut v = serde_json::to_value(rec).unwrap_or(Value::Null);
+                    v["event"] = json!("estimate");
+                    if let Err(e) = w(out, serde_json::to_string(&v).unwrap_or_default()) {
+                        io_err.get_or_insert(e);
+                    }
+                }
+                history.records.push(rec.clone());
+                if let Some(path) = &wa.plot {
+                    if history.records.len() % wa.plot_every.max(1) == 0 {
+                        if let Err(e) = crate::data::write_atomic(path, history.svg().as_bytes()) {
+                            io_err.get_or_insert(CliError::Lib(e.into()));
+                        }
+                    }
+                }
+            },
+        )
+        .map_err(link_err)?;
+    bar.finish_and_clear();
+    if let Some(e) = io_err {
+        return Err(e);
+    }
+    if let Some(path) = &wa.plot {
+        crate::data::write_atomic(path, history.svg().as_bytes())
+            .map_err(|e| CliError::Lib(e.into()))?;
+    }
+    let est = link.estimate().map_err(link_err)?;
+    let secs = t0.elapsed().as_secs_f64();
+    let mut res = json!({
+        "command": "device watch",
+        "file": ds.source,
+        "samples": n,
+        "seconds": secs,
+        "samples_per_second": n as f64 / secs.max(1e-9),
+        "every": wa.every,
+        "forgetting": acc.forgetting,
+        "window": acc.window,
+        "reports": history.records.len(),
+        "solves": est.solves,
+        "failures": est.failures,
+        "status": st,
+        "last": history.records.last(),
+    });
+    if let Some(pts) = &replay {
+        res["compare"] = json!({
+            "host_solves": pts.len(),
+            "reports_compared": compared,
+            "identical": compared - mismatches.len(),
+        });
+        if pts.len() != est.solves as usize {
+            mismatches.push(format!(
+                "{} solves on the device, {} in the host replay",
+                est.solves,
+                pts.len()
+            ));
+        }
+        if !mismatches.is_empty() {
+            return Err(CliError::Invalid(format!(
+                "the device's recursive estimate differs from the host's replay: {}",
+                mismatches.join("; ")
+            )));
+        }
+    }
+    if let Some(path) = &wa.plot {
+        res["plot"] = json!(path.display().to_string());
+    }
+    Ok(res)
+}
+
+/// The progress line's message for a report.
+fn record_line(r: &WatchRecord) -> String {
+    let rms: Vec<String> = r.interval_rms.iter().map(|v| format!("{v:.3e}")).collect();
+    format!(
+        "solve {} at sample {}: one-step RMS [{}], {} active, {} sweeps",
+        r.solves,
+        r.at_sample,
+        rms.join(" "),
+        r.summary.active,
+        r.summary.iterations
+    )
+}
+
+/// Why a device report differs from the host replay's point of the same solve count (bit
+/// for bit: the device and the host run the same core code in the same float type).
+fn differs(rec: &WatchRecord, pts: &[ReplayPoint]) -> Option<String> {
+    let Some(p) = pts.iter().find(|p| p.solves == rec.solves) else {
+        return Some(format!("solve {} has no host counterpart", rec.solves));
+    };
+    if p.at_sample != rec.at_sample {
+        return Some(format!(
+            "solve {} at sample {} on the device, {} on the host",
+            rec.solves, rec.at_sample, p.at_sample
+        ));
+    }
+    if p.theta != rec.theta {
+        let d = p
+            .theta
+            .iter()
+            .zip(&rec.theta)
+            .map(|(a, b)| (a - b).abs())
+            .fold(0.0, f64::max);
+        return Some(format!(
+            "solve {}: coefficients differ by up to {d:.3e}",
+            rec.solves
+        ));
+    }
+    if p.interval_count != rec.interval_count || p.interval_sse != rec.interval_sse {
+        return Some(format!(
+            "solve {}: one-step errors differ ({} predictions, SSE {:?} on the device; {}, {:?} on the host)",
+            rec.solves, rec.interval_count, rec.interval_sse, p.interval_count, p.interval_sse
+        ));
+    }
+    None
 }
 
 fn print_human(v: &Value, out: &mut dyn Write) -> Result<(), CliError> {
@@ -581,6 +883,31 @@ fn print_human(v: &Value, out: &mut dyn Write) -> Result<(), CliError> {
                     .map(|x| format!("{:.4}", x.as_f64().unwrap_or(0.0)))
                     .collect();
                 w(out, format!("  coefficients: {}", vals.join(" ")))?;
+            }
+        }
+        "device watch" => {
+            w(out, format!(
+                "watched {} samples of {}: {} solves every {} samples ({} failed), forgetting {}, window {}",
+                v["samples"], v["file"].as_str().unwrap_or("?"), v["solves"], v["every"], v["failures"],
+                v["forgetting"], v["window"]
+            ))?;
+            if let Some(l) = v.get("last").filter(|l| !l.is_null()) {
+                w(out, format!(
+                    "  last solve at sample {}: one-step RMS of the previous solution {}, coefficients {}",
+                    l["at_sample"], l["interval_rms"], l["theta"]
+                ))?;
+            }
+            if let Some(p) = v.get("plot") {
+                w(out, format!("  plot: {}", p.as_str().unwrap_or("?")))?;
+            }
+            if let Some(c) = v.get("compare") {
+                w(
+                    out,
+                    format!(
+                        "  host replay: {} of {} reports identical bit for bit",
+                        c["identical"], c["reports_compared"]
+                    ),
+                )?;
             }
         }
         "device push" => w(

@@ -556,3 +556,45 @@ fn residual_col(res: &Outcome, mode: Mode, j: usize) -> Vec<f64> {
         .copied()
         .collect()
 }
+
+/// A panel of line series for other front ends (`lpvid device watch`), drawn by this
+/// module's renderer: series are (label, x, y).
+#[derive(Debug, Clone, Default)]
+pub struct LinePanel {
+    /// Title above the panel.
+    pub title: String,
+    /// x axis label.
+    pub xlabel: String,
+    /// y axis label.
+    pub ylabel: String,
+    /// Logarithmic y axis.
+    pub log_y: bool,
+    /// (label, x, y) per series.
+    pub series: Vec<(String, Vec<f64>, Vec<f64>)>,
+}
+
+/// An SVG figure of `panels`, `cols` per row, in the diagnosis pictures' style (colours
+/// cycle through a fixed palette).
+pub fn line_panels_svg(panels: &[LinePanel], cols: usize) -> String {
+    const PALETTE: [&str; 8] = [
+        "#1f77b4", "#d62728", "#2ca02c", "#ff7f0e", "#9467bd", "#8c564b", "#e377c2", "#7f7f7f",
+    ];
+    let drawn: Vec<Panel> = panels
+        .iter()
+        .map(|lp| {
+            let mut p = Panel::new(lp.title.clone(), &lp.xlabel, &lp.ylabel);
+            p.log_y = lp.log_y;
+            for (i, (label, x, y)) in lp.series.iter().enumerate() {
+                p.series.push(series(
+                    x.clone(),
+                    y.clone(),
+                    PALETTE[i % PALETTE.len()],
+                    label,
+                    Kind::Line,
+                ));
+            }
+            p
+        })
+        .collect();
+    render_svg(&drawn, cols)
+}

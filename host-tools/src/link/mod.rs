@@ -16,10 +16,12 @@
 //! accumulated on the host; [`compare::compare_with_file`] checks both against a file fit.
 
 pub mod compare;
+pub mod watch;
 
 pub use compare::{
-    compare_with_file, extended_gram, fit_pulled, gram_difference, host_stats, model_difference,
-    sample_rows, CompareError, Comparison, HostStats,
+    compare_as_device, compare_with_file, extended_gram, fit_pulled, gram_difference, host_stats,
+    host_stats_as_device, model_difference, replay_tracking, sample_rows, CompareError, Comparison,
+    HostStats, ReplayPoint,
 };
 
 use std::io::{self, Read, Write};
@@ -30,7 +32,8 @@ use std::time::{Duration, Instant};
 use lpvid::device::Device;
 use lpvid::protocol::{
     encode_frame, max_raw, Config, Deframer, ErrorCode, ErrorReply, Event, Info, Layout, Message,
-    ModelChunk, SolveRequest, SolveSummary, Status, WireReal, MESSAGE_HEADROOM, VERSION,
+    ModelChunk, Rejected, SolveRequest, SolveSummary, Status, Track, VersionMismatch, WireReal,
+    MESSAGE_HEADROOM, VERSION,
 };
 use lpvid::{PbsidDims, StatsLayout};
 
@@ -73,6 +76,10 @@ pub enum LinkError {
     /// The model to push has matrices whose shapes disagree.
     #[error("model: {0}")]
     Shape(#[from] crate::lpvss::ShapeError),
+    /// The device speaks another protocol version (its frames carry another version byte,
+    /// or it NAKed ours naming its version).
+    #[error("{0} (the device and the host must speak the same protocol version)")]
+    Version(VersionMismatch),
 }
 
 /// Counters of a link's life: what the faults cost.
@@ -127,8 +134,47 @@ pub enum Reply {
         /// Last prediction per output.
         last: Vec<f64>,
     },
+    /// The recursive estimate's record (protocol 2).
+    Estimate(EstimateReply),
     /// A request-type message (a device never sends one).
     Other,
+}
+
+/// The recursive estimate's record ([`lpvid::protocol::Estimate`]), values as f64.
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
+pub struct EstimateReply {
+    /// Successful tracking solves.
+    pub solves: u32,
+    /// Failed tracking solves.
+    pub failures: u32,
+    /// Stream index of the next sample when the last solve ran.
+    pub at_sample: u32,
+    /// The last solve's summary.
+    pub summary: SolveSummary,
+    /// One-step predictions of the previous solution over its interval.
+    pub count: u32,
+    /// Their sum of squared errors per output.
+    pub sse: Vec<f64>,
+    /// The newest one-step error per output.
+    pub last_error: Vec<f64>,
+}
+
+/// How the device accumulates (protocol 2): exponential forgetting or a sliding window.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Accumulation {
+    /// Forgetting factor in (0, 1] (1: plain sums).
+    pub forgetting: f32,
+    /// Sliding window in statistic vectors (0: none).
+    pub window: u32,
+}
+
+impl Default for Accumulation {
+    fn default() -> Self {
+        Accumulation {
+            forgetting: 1.0,
+            window: 0,
+        }
+    }
 }
 
 /// Little-endian floats of `float_bytes` (4 or 8) each, as f64.
@@ -258,7 +304,7 @@ impl Adaptive {
 }
 
 /// A received frame: (seq, reply), or why it was rejected.
-type Frame = Result<(u32, Reply), ErrorCode>;
+type Frame = Result<(u32, Reply), Rejected>;
 
 /// Settings of a [`Link`].
 #[derive(Debug, Clone, Copy)]
@@ -365,13 +411,13 @@ impl<P: Read + Write> Link<P> {
                 self.in_pos += 1;
                 match self.deframer.push(b) {
                     Event::Pending => {}
-                    Event::Oversize => return Ok(Some(Err(ErrorCode::Oversize))),
+                    Event::Oversize => return Ok(Some(Err(Rejected::Frame(ErrorCode::Oversize)))),
                     Event::Frame(buf) => {
-                        return Ok(Some(match lpvid::protocol::decode_frame(buf) {
-                            Err(code) => Err(code),
+                        return Ok(Some(match lpvid::protocol::decode_frame_checked(buf) {
+                            Err(r) => Err(r),
                             Ok(pkt) => match owned(&pkt.msg, fb) {
                                 Ok(r) => Ok((pkt.seq, r)),
-                                Err(_) => Err(ErrorCode::Malformed),
+                                Err(_) => Err(Rejected::Frame(ErrorCode::Malformed)),
                             },
                         }))
                     }
@@ -449,7 +495,12 @@ impl<P: Read + Write> Link<P> {
                         last = format!("timeout after {} ms", wait.as_millis());
                         break;
                     }
-                    Some(Err(code)) => {
+                    Some(Err(Rejected::Version(v))) => {
+                        // a valid frame of another version: no retransmission will help
+                        self.answered = true;
+                        return Err(LinkError::Version(v));
+                    }
+                    Some(Err(Rejected::Frame(code))) => {
                         self.stats.bad_frames += 1;
                         last = format!("reply frame rejected: {code}");
                         break;
@@ -468,10 +519,10 @@ impl<P: Read + Write> Link<P> {
                     Some(Ok((0, Reply::Error(e)))) => {
                         self.answered = true;
                         if e.code == ErrorCode::WrongVersion {
-                            return Err(LinkError::Protocol(format!(
-                                "the device speaks protocol version {}, this host {VERSION}",
-                                e.detail
-                            )));
+                            return Err(LinkError::Version(VersionMismatch {
+                                ours: VERSION,
+                                theirs: u8::try_from(e.detail).unwrap_or(u8::MAX),
+                            }));
                         }
                         self.stats.naks += 1;
                         last = format!("device NAK: {}", e.code);
@@ -491,10 +542,10 @@ impl<P: Read + Write> Link<P> {
         match self.request(&Message::Hello { version: VERSION })? {
             Reply::Info(i) => {
                 if i.version != VERSION {
-                    return Err(LinkError::Protocol(format!(
-                        "the device speaks protocol version {}, this host {VERSION}",
-                        i.version
-                    )));
+                    return Err(LinkError::Version(VersionMismatch {
+                        ours: VERSION,
+                        theirs: i.version,
+                    }));
                 }
                 if i.float_bytes != 4 && i.float_bytes != 8 {
                     return Err(LinkError::Protocol(format!(
@@ -524,8 +575,18 @@ impl<P: Read + Write> Link<P> {
         }
     }
 
-    /// Configure dimensions and layout (clears the device's statistics).
+    /// Configure dimensions and layout (clears the device's statistics), plain sums.
     pub fn configure(&mut self, dims: &PbsidDims, layout: StatsLayout) -> Result<(), LinkError> {
+        self.configure_with(dims, layout, Accumulation::default())
+    }
+
+    /// Configure dimensions, layout, forgetting and window (clears the statistics).
+    pub fn configure_with(
+        &mut self,
+        dims: &PbsidDims,
+        layout: StatsLayout,
+        acc: Accumulation,
+    ) -> Result<(), LinkError> {
         let b = |v: usize, what: &str| {
             u8::try_from(v).map_err(|_| LinkError::Protocol(format!("{what} = {v} is too large")))
         };
@@ -535,12 +596,35 @@ impl<P: Read + Write> Link<P> {
             s: b(dims.s, "s")?,
             p: b(dims.p, "p")?,
             layout: lpvid::device::wire_layout(layout),
-            forgetting: 1.0,
+            forgetting: acc.forgetting,
+            window: acc.window,
         };
         match self.request(&Message::Configure(cfg))? {
             Reply::Ack => Ok(()),
             r => Err(unexpected("Ack", &r)),
         }
+    }
+
+    /// Start (every > 0), change or stop (every = 0) the recursive estimate.
+    pub fn track(&mut self, t: Track) -> Result<(), LinkError> {
+        match self.request(&Message::Track(t))? {
+            Reply::Ack => Ok(()),
+            r => Err(unexpected("Ack", &r)),
+        }
+    }
+
+    /// The recursive estimate's record.
+    pub fn estimate(&mut self) -> Result<EstimateReply, LinkError> {
+        match self.request(&Message::GetEstimate)? {
+            Reply::Estimate(e) => Ok(e),
+            r => Err(unexpected("Estimate", &r)),
+        }
+    }
+
+    /// The coefficients of the last solve (l x (q + r) values, `columns` x `outputs` as the
+    /// solve summary says).
+    pub fn solution(&mut self, columns: u32, outputs: u8) -> Result<Vec<f64>, LinkError> {
+        self.pull_values(true, columns as usize * outputs as usize)
     }
 
     /// Clear the device's statistics and sample index.
@@ -772,6 +856,15 @@ fn owned(msg: &Message<'_>, fb: u8) -> Result<Reply, LinkError> {
             sse: values_to_f64(p.sse, fb)?,
             last: values_to_f64(p.last, fb)?,
         },
+        Message::Estimate(e) => Reply::Estimate(EstimateReply {
+            solves: e.solves,
+            failures: e.failures,
+            at_sample: e.at_sample,
+            summary: e.summary,
+            count: e.count,
+            sse: values_to_f64(e.sse, fb)?,
+            last_error: values_to_f64(e.last_error, fb)?,
+        }),
         _ => Reply::Other,
     })
 }
