@@ -2,7 +2,8 @@
 # `make demo` runs the main job; `make test` runs every check CI runs.
 
 # Debian packages the build and the tests need (installed by scripts/setup.sh if missing).
-# libopenblas-dev: BLAS + LAPACK for clarabel's SDP cones (H-infinity observer LMI), linked by host-tools/build.rs.
+# libopenblas-dev: BLAS + LAPACK for clarabel's SDP cones (H-infinity observer LMI), opened at run time
+# by host-tools/src/blas.rs (only a process that designs an observer loads it).
 # qemu-system-arm: the firmware's Cortex-M4F board (mps2-an386) for make device-test.
 DEB_PACKAGES := pkg-config libopenblas-dev qemu-system-arm
 

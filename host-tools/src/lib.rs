@@ -18,6 +18,7 @@
 //! never imported by the library), the device link's host side, the Python package.
 
 pub mod arx;
+pub mod blas;
 pub use pbsid::bpdn;
 #[cfg(feature = "cli")]
 pub mod cli;

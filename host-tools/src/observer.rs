@@ -170,6 +170,9 @@ pub enum ObserverError {
     /// The solver stopped without a solution.
     #[error("H-infinity observer: the SDP solver failed ({0})")]
     SolverFailed(String),
+    /// The SDP solver's BLAS/LAPACK (the system OpenBLAS) is not installed.
+    #[error("H-infinity observer: {0}")]
+    Blas(#[from] crate::blas::BlasUnavailable),
     /// A `NAME=LO:HI` scheduling range without `=`.
     #[error("scheduling range '{0}': expected NAME=LO:HI, e.g. p1=-0.8:1.2")]
     RangeSyntax(String),
@@ -923,30 +926,10 @@ struct SdpSolution {
     solve_time: f64,
 }
 
-extern "C" {
-    /// OpenBLAS's thread count (the system library linked by build.rs).
-    fn openblas_set_num_threads(n: std::os::raw::c_int);
-}
-
-/// The SDP's blocks are at most 4n x 4n: BLAS threads only add synchronisation (measured on
-/// the 2-core machine: the n = 4, 4-vertex solve took 26-29 ms with two OpenBLAS threads,
-/// 11-16 ms with one). Use one thread unless the user set OPENBLAS_NUM_THREADS.
-fn single_thread_blas() {
-    static ONCE: std::sync::Once = std::sync::Once::new();
-    ONCE.call_once(|| {
-        if std::env::var_os("OPENBLAS_NUM_THREADS").is_none() {
-            // SAFETY: a plain setter of OpenBLAS's global thread count, called once before
-            // any BLAS call of ours.
-            unsafe { openblas_set_num_threads(1) }
-        }
-    });
-}
-
 /// min c^T x s.t. F_j(x) - margin I in the PSD cone for every LMI j, with clarabel: rows of
 /// the upper triangle in column-major order, off-diagonal entries scaled by sqrt(2), and
 /// `b - A x` in the cone (RECIPES.md).
 fn solve_sdp(lmis: &[AffineLmi], cost: &[f64], margin: f64) -> SdpSolution {
-    single_thread_blas();
     let nvar = cost.len();
     let sqrt2 = std::f64::consts::SQRT_2;
     let (mut ri, mut ci, mut vv) = (Vec::new(), Vec::new(), Vec::new());
@@ -1158,6 +1141,7 @@ pub fn design_hinf(
     if !(opts.margin > 0.0 && opts.margin.is_finite()) {
         return Err(ObserverError::Margin(opts.margin));
     }
+    crate::blas::load()?;
     let c = &model.c[0];
     let nz = normalise(nc)?;
     let vertices = sbox.vertices();
