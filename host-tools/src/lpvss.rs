@@ -195,33 +195,35 @@ impl LpvSs {
         x0: DVector<f64>,
     ) -> DMatrix<f64> {
         let n_samples = sig.len();
-        let (n, l) = (self.n(), self.l());
-        let mut x = x0;
+        let (n, r, l, m) = (self.n(), self.r(), self.l(), self.m());
+        let s = sig.p.ncols().min(m - 1);
         let mut out = DMatrix::<f64>::zeros(n_samples, l);
+        // the sample loop allocates nothing: these are its whole state
+        let mut x: Vec<f64> = x0.iter().copied().collect();
+        let mut xn = vec![0.0; n];
+        let (mut mu, mut uk) = (vec![0.0; m], vec![0.0; r]);
+        let (mut yhat, mut ek) = (vec![0.0; l], vec![0.0; l]);
+        mu[0] = 1.0;
         for k in 0..n_samples {
-            let mu = sig.mu(k);
-            let u = sig.u.row(k).transpose();
-            let c = scheduled(&self.c, &mu);
-            let d = scheduled(&self.d, &mu);
-            let yhat = &c * &x + &d * &u;
-            let ek = if predictor {
-                sig.y.row(k).transpose() - &yhat
-            } else if let Some(e) = e {
-                e.row(k).transpose()
-            } else {
-                DVector::zeros(l)
-            };
-            let yk = if predictor { yhat.clone() } else { &yhat + &ek };
-            out.set_row(k, &yk.transpose());
-            let mut xn = DVector::<f64>::zeros(n);
-            for i in 0..self.m() {
-                let w = mu[i];
-                if w != 0.0 {
-                    xn += (&self.a[i] * &x + &self.b[i] * &u + &self.k[i] * &ek) * w;
-                }
+            for q in 0..s {
+                mu[q + 1] = sig.p[(k, q)];
             }
-            x = xn;
-            if !x.iter().all(|v| v.is_finite()) || x.amax() > 1e150 {
+            for (j, v) in uk.iter_mut().enumerate() {
+                *v = sig.u[(k, j)];
+            }
+            self.output_into(&mu, &x, &uk, &mut yhat);
+            for j in 0..l {
+                ek[j] = if predictor {
+                    sig.y[(k, j)] - yhat[j]
+                } else {
+                    e.map_or(0.0, |e| e[(k, j)])
+                };
+                out[(k, j)] = if predictor { yhat[j] } else { yhat[j] + ek[j] };
+            }
+            let innovation = (predictor || e.is_some()).then_some(&ek[..]);
+            self.state_into(&mu, &x, &uk, innovation, &mut xn);
+            std::mem::swap(&mut x, &mut xn);
+            if x.iter().any(|v| !v.is_finite() || v.abs() > 1e150) {
                 // diverged: the rest of the output is meaningless; mark it so metrics give 0
                 for kk in k + 1..n_samples {
                     for j in 0..l {
@@ -232,6 +234,64 @@ impl LpvSs {
             }
         }
         out
+    }
+
+    /// The output equation y = C(mu) x + D(mu) u into `y` (one C or D: parameter-independent),
+    /// without allocating: every simulation's sample loop (`run_x0`,
+    /// `simulate::free_run_ss`) is made of this and [`LpvSs::state_into`].
+    pub fn output_into(&self, mu: &[f64], x: &[f64], u: &[f64], y: &mut [f64]) {
+        let (cs, ds) = (self.c.len() > 1, self.d.len() > 1);
+        for (j, yj) in y.iter_mut().enumerate() {
+            let mut acc = 0.0;
+            for (i, c) in self.c.iter().enumerate() {
+                let w = if cs { mu[i] } else { 1.0 };
+                if w != 0.0 {
+                    acc += w * x
+                        .iter()
+                        .enumerate()
+                        .map(|(a, xa)| c[(j, a)] * xa)
+                        .sum::<f64>();
+                }
+            }
+            for (i, d) in self.d.iter().enumerate() {
+                let w = if ds { mu[i] } else { 1.0 };
+                if w != 0.0 {
+                    acc += w * u
+                        .iter()
+                        .enumerate()
+                        .map(|(a, ua)| d[(j, a)] * ua)
+                        .sum::<f64>();
+                }
+            }
+            *yj = acc;
+        }
+    }
+
+    /// The state equation x+ = sum_i mu_i (A_i x + B_i u + K_i e) into `xn` (`e` None: no
+    /// innovation term), without allocating.
+    pub fn state_into(&self, mu: &[f64], x: &[f64], u: &[f64], e: Option<&[f64]>, xn: &mut [f64]) {
+        xn.iter_mut().for_each(|v| *v = 0.0);
+        for (i, &w) in mu.iter().enumerate().take(self.m()) {
+            if w == 0.0 {
+                continue;
+            }
+            let (a, b, k) = (&self.a[i], &self.b[i], &self.k[i]);
+            for (row, v) in xn.iter_mut().enumerate() {
+                let mut acc = 0.0;
+                for (col, xv) in x.iter().enumerate() {
+                    acc += a[(row, col)] * xv;
+                }
+                for (col, uv) in u.iter().enumerate() {
+                    acc += b[(row, col)] * uv;
+                }
+                if let Some(e) = e {
+                    for (col, ev) in e.iter().enumerate() {
+                        acc += k[(row, col)] * ev;
+                    }
+                }
+                *v += w * acc;
+            }
+        }
     }
 
     /// Frozen-scheduling matrix A(mu) = sum_i mu_i A^(i).

@@ -241,8 +241,8 @@ pub fn free_run_ss(
     let mut x: Vec<f64> = x0.iter().copied().collect();
     let mut xn = vec![0.0; n];
     let mut uk = vec![0.0; r];
+    let mut yk = vec![0.0; l];
     let mut mu = vec![1.0; mm];
-    let (cs, ds) = (m.c.len() > 1, m.d.len() > 1);
     for k in 0..upto.min(big_n) {
         // the signals that read outputs up to k-1 (a delay-0 own value counts as 0 here: the
         // output equation does not use it, SignalMap::check_loops)
@@ -255,23 +255,10 @@ pub fn free_run_ss(
         for (j, v) in uk.iter_mut().enumerate() {
             *v = u[(k, j)];
         }
-        let mut finite = true;
-        for j in 0..l {
-            let mut y = 0.0;
-            for (i, c) in m.c.iter().enumerate() {
-                let w = if cs { mu[i] } else { 1.0 };
-                if w != 0.0 {
-                    y += w * (0..n).map(|a| c[(j, a)] * x[a]).sum::<f64>();
-                }
-            }
-            for (i, d) in m.d.iter().enumerate() {
-                let w = if ds { mu[i] } else { 1.0 };
-                if w != 0.0 {
-                    y += w * (0..r).map(|a| d[(j, a)] * uk[a]).sum::<f64>();
-                }
-            }
-            finite &= y.is_finite();
-            out[(k, j)] = y;
+        m.output_into(&mu, &x, &uk, &mut yk);
+        let finite = yk.iter().all(|v| v.is_finite());
+        for (j, v) in yk.iter().enumerate() {
+            out[(k, j)] = *v;
         }
         // ... then with y_k known
         if !fb.is_empty() {
@@ -283,22 +270,7 @@ pub fn free_run_ss(
                 *v = u[(k, j)];
             }
         }
-        xn.iter_mut().for_each(|v| *v = 0.0);
-        for ((a, b), &w) in m.a.iter().zip(&m.b).zip(&mu) {
-            if w == 0.0 {
-                continue;
-            }
-            for (row, v) in xn.iter_mut().enumerate() {
-                let mut acc = 0.0;
-                for (col, xv) in x.iter().enumerate() {
-                    acc += a[(row, col)] * xv;
-                }
-                for (col, uv) in uk.iter().enumerate() {
-                    acc += b[(row, col)] * uv;
-                }
-                *v += w * acc;
-            }
-        }
+        m.state_into(&mu, &x, &uk, None, &mut xn);
         std::mem::swap(&mut x, &mut xn);
         if !finite || x.iter().any(|v| !v.is_finite() || v.abs() > 1e150) {
             for kk in k + 1..big_n {
