@@ -89,13 +89,14 @@ pub fn identify(
         Some(v) if opts.reg == Reg::BpdnSv => Some(map.evaluate(v)?),
         _ => None,
     };
-    let fit = pbsid::fit_with_validation(&sig, val_sig.as_ref(), opts).map_err(|e| Error::Fit {
+    let fit_error = |e| Error::Fit {
         file: ds.source.clone(),
         source: e,
-    })?;
+    };
+    let cands = pbsid::state_candidates(&sig, val_sig.as_ref(), opts).map_err(fit_error)?;
+    let fit = cands.realize(&sig, opts, None).map_err(fit_error)?;
     // --order auto: never an order whose held-out free run is far worse than order + 1 or + 2
-    let (fit, checked_opts, order_check) =
-        check_order(ds, val, opts, fit, &map, &sig, val_sig.as_ref())?;
+    let (fit, checked_opts, order_check) = check_order(ds, val, opts, fit, &cands, &map, &sig)?;
     let opts = &checked_opts;
     let names: Vec<String> = map.scheduling.iter().skip(1).map(|p| describe(p)).collect();
     let obs_step = observer::observer_step(
@@ -163,12 +164,13 @@ pub fn held_out_error(model: &ModelFile, ds: &Dataset) -> Result<f64, Error> {
 }
 
 /// The free-run check of `--order auto` ([`pbsid::free_run_order`]): the orders n, n + 1,
-/// n + 2 from the singular-value gap are refit (on the first four fifths of the training
-/// file, or on all of it when a validation file is given) and scored in free run on held-out
-/// data (the last fifth, or the validation file) from an estimated initial state; the gap's
-/// order stays unless it is far worse than a larger one. A changed order is refit on the
-/// whole training file with that order fixed (so its record's order rule is the number, and
-/// diagnose's refits reproduce it). Returns the fit, the options it used and the check's
+/// n + 2 from the singular-value gap are realized from one regression (the fit's own
+/// `fit_cands` when a validation file is given, else one on the first four fifths of the
+/// training file: [`pbsid::StateCandidates`]) and scored in free run on held-out data (the
+/// last fifth, or the validation file) from an estimated initial state; the gap's order stays
+/// unless it is far worse than a larger one. A changed order is realized from `fit_cands`
+/// with that order fixed (so its record's order rule is the number, and diagnose's refits
+/// reproduce it). Returns the fit, the options it used and the check's
 /// record (None when the order was given or there is too little data to hold out).
 #[allow(clippy::too_many_arguments)]
 fn check_order(
@@ -176,16 +178,16 @@ fn check_order(
     val: Option<&Dataset>,
     opts: &PbsidOptions,
     fit: PbsidFit,
+    fit_cands: &pbsid::StateCandidates,
     map: &SignalMap,
     sig: &Signals,
-    val_sig: Option<&Signals>,
 ) -> Result<(PbsidFit, PbsidOptions, Option<Value>), Error> {
     if opts.order != pbsid::Order::Auto || matches!(opts.reg, Reg::BpdnAic | Reg::BpdnSv) {
         return Ok((fit, opts.clone(), None));
     }
     let n_rows = ds.len();
     let (fit_sig, hold, held) = match val {
-        Some(v) => (sig.clone(), v.clone(), "the validation file"),
+        Some(v) => (None, v.clone(), "the validation file"),
         None => {
             let cut = n_rows - n_rows / 5;
             if n_rows / 5 < 100 || cut < 10 * (opts.past + 3) {
@@ -197,7 +199,7 @@ fn check_order(
                 cols: ds.cols.iter().map(|c| c[cut..].to_vec()).collect(),
             };
             (
-                sig.slice(0, cut),
+                Some(sig.slice(0, cut)),
                 tail,
                 "the last fifth of the training file",
             )
@@ -205,11 +207,23 @@ fn check_order(
     };
     let n0 = fit.order;
     let max = opts.max_order.min(fit.singular_values.len());
+    // one regression for every candidate order (they differ only in the realization): the
+    // fit's own with a validation file, else one on the first four fifths
+    let mut op_check = opts.clone();
+    op_check.refine = false;
+    let own;
+    let (cands, fit_sig) = match &fit_sig {
+        None => (fit_cands, sig),
+        Some(head) => match pbsid::state_candidates(head, None, &op_check) {
+            Ok(c) => {
+                own = c;
+                (&own, head)
+            }
+            Err(_) => return Ok((fit, opts.clone(), None)),
+        },
+    };
     let err = |o: usize| -> Option<f64> {
-        let mut op = opts.clone();
-        op.order = pbsid::Order::Fixed(o);
-        op.refine = false;
-        let f = pbsid::fit(&fit_sig, &op).ok()?;
+        let f = cands.realize(fit_sig, &op_check, Some(o)).ok()?;
         let mf = ModelFile {
             kind: ModelKind::Ss(f.model),
             signals: map.clone(),
@@ -234,7 +248,9 @@ fn check_order(
     }
     let mut op = opts.clone();
     op.order = pbsid::Order::Fixed(n);
-    let mut f2 = pbsid::fit_with_validation(sig, val_sig, &op).map_err(|e| Error::Fit {
+    // with a validation file the candidates came from the whole training data: realize there
+    let f2 = fit_cands.realize(sig, &op, Some(n));
+    let mut f2 = f2.map_err(|e| Error::Fit {
         file: ds.source.clone(),
         source: e,
     })?;

@@ -110,6 +110,33 @@ pub fn fit_with_validation(
     val: Option<&Signals>,
     opts: &PbsidOptions,
 ) -> Result<PbsidFit, FitError> {
+    state_candidates(sig, val, opts)?.realize(sig, opts, None)
+}
+
+/// The first stage of a fit, shared by every order: the regression, the singular values
+/// (15) and the state candidates of (16) for all orders (or the sparse path's states and
+/// order). [`StateCandidates::realize`] finishes a model at one order, so that comparing
+/// orders (`--order auto`'s free-run check) costs one regression, not one per order.
+pub struct StateCandidates {
+    scaling: Scaling,
+    sv: Vec<f64>,
+    x: nalgebra::DMatrix<f64>,
+    reg: ridge::RegressionInfo,
+    solver: Solver,
+    solver_reason: String,
+    sparse_order: Option<(usize, String)>,
+    q: usize,
+    windows: usize,
+    past: usize,
+}
+
+/// The regression and state candidates of [`fit_with_validation`] (all but the order choice
+/// and the realization).
+pub fn state_candidates(
+    sig: &Signals,
+    val: Option<&Signals>,
+    opts: &PbsidOptions,
+) -> Result<StateCandidates, FitError> {
     let (n_samples, r, l, s) = (sig.len(), sig.u.ncols(), sig.y.ncols(), sig.p.ncols());
     let dims = PbsidDims::new(r, l, s, opts.past)?;
     let p = dims.p;
@@ -187,36 +214,88 @@ pub fn fit_with_validation(
         Solver::Dual => dual::dual_states(&dims, f, &slab, windows, opts)?,
         _ => primal::primal_states(&dims, f, &slab, windows, opts)?,
     };
-    let (order, order_reason) = match sparse_order {
-        Some(chosen) => chosen,
-        None => choose_order(&sv, windows, opts)?,
-    };
-    let states = x.rows(0, order).into_owned();
-    let scaled = realize_from_states(&dims, &slab, &states, opts.feedthrough)?;
-    let mut model = unscale(&scaled, &scaling);
-    let mut refinement = None;
-    if opts.refine {
-        let r = crate::refine::refine_output_error(&model, sig, opts.feedthrough, 50);
-        if r.mse_after < r.mse_before {
-            model = r.model;
-        }
-        refinement = Some((r.mse_before, r.mse_after.min(r.mse_before), r.iterations));
-    }
-    Ok(PbsidFit {
-        model,
-        singular_values: sv,
-        order,
-        order_reason,
-        lambda: reg.lambda_rel(),
-        dof: reg.dof,
+    Ok(StateCandidates {
+        scaling,
+        sv,
+        x,
+        reg,
         solver,
         solver_reason,
+        sparse_order,
         q,
         windows,
-        scaling,
-        states: Some(states),
-        refinement,
+        past: p,
     })
+}
+
+impl StateCandidates {
+    /// The singular values of (15), largest first.
+    pub fn singular_values(&self) -> &[f64] {
+        &self.sv
+    }
+
+    /// The model at `order` (None: the order rule of `opts`, or the sparse path's choice),
+    /// realized from the first `order` state candidates on the same data `sig` (eqs. (17)-(18):
+    /// least squares for the system matrices given the states), then refined if `opts` asks.
+    pub fn realize(
+        &self,
+        sig: &Signals,
+        opts: &PbsidOptions,
+        order: Option<usize>,
+    ) -> Result<PbsidFit, FitError> {
+        let (r, l, s) = (sig.u.ncols(), sig.y.ncols(), sig.p.ncols());
+        let dims = PbsidDims::new(r, l, s, self.past)?;
+        let (order, order_reason) = match (order, &self.sparse_order) {
+            (Some(o), _) => {
+                if o == 0 || o > self.x.nrows() {
+                    return Err(FitError::OrderTooLarge {
+                        order: o,
+                        available: self.x.nrows(),
+                    });
+                }
+                (o, format!("order {o} given"))
+            }
+            (None, Some(chosen)) => chosen.clone(),
+            (None, None) => choose_order(&self.sv, self.windows, opts)?,
+        };
+        let rows = scaled_rows(sig, &self.scaling);
+        let slab = Slab::new(&rows, r, l, dims.m())?;
+        let scaling = self.scaling.clone();
+        let (sv, reg, solver, solver_reason, q, windows) = (
+            self.sv.clone(),
+            &self.reg,
+            self.solver,
+            self.solver_reason.clone(),
+            self.q,
+            self.windows,
+        );
+        let states = self.x.rows(0, order).into_owned();
+        let scaled = realize_from_states(&dims, &slab, &states, opts.feedthrough)?;
+        let mut model = unscale(&scaled, &scaling);
+        let mut refinement = None;
+        if opts.refine {
+            let r = crate::refine::refine_output_error(&model, sig, opts.feedthrough, 50);
+            if r.mse_after < r.mse_before {
+                model = r.model;
+            }
+            refinement = Some((r.mse_before, r.mse_after.min(r.mse_before), r.iterations));
+        }
+        Ok(PbsidFit {
+            model,
+            singular_values: sv,
+            order,
+            order_reason,
+            lambda: reg.lambda_rel(),
+            dof: reg.dof,
+            solver,
+            solver_reason,
+            q,
+            windows,
+            scaling,
+            states: Some(states),
+            refinement,
+        })
+    }
 }
 
 /// Identify from statistics alone (a device's pull, or merged experiments): the Gram of the
