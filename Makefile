@@ -7,7 +7,7 @@
 # qemu-system-arm: the firmware's Cortex-M4F board (mps2-an386) for make device-test.
 DEB_PACKAGES := pkg-config libopenblas-dev qemu-system-arm
 
-.PHONY: demo test setup check-fmt clippy core-thumb host-lib test-all bench device-test python-test
+.PHONY: demo test setup check-fmt clippy core-thumb host-lib test-all bench device-test device-count python-test
 
 demo: setup
 	cargo run --release -p lpvid-host --bin lpvid -- demo
@@ -51,6 +51,11 @@ test-all:
 # `lpvid device`, pull the statistics, compare with the file-based fit (scripts/device-test.sh).
 device-test: setup
 	bash scripts/device-test.sh
+
+# Cortex-M4F instructions per sample and per solve: the firmware's count image in QEMU with
+# -icount, and the Gram update's loops in the firmware's disassembly (docs/bench-device.md).
+device-count: setup
+	bash scripts/count-instructions.sh
 
 # The Python package (host-tools/python): pip install of the path into target/pyenv, then
 # its pytest suite (model round trip with the CLI, Dask equality on a 2-process cluster).

@@ -65,8 +65,13 @@ done
 echo cont >&4
 
 dev() { "$LPVID" device --port "$PTY" --json "$@"; }
-retries() { sed -n 's/.*"retries": \([0-9]*\).*/\1/p' "$1" | head -1; }
+retries() { local n; n=$(sed -n 's/.*"retries": *\([0-9]*\).*/\1/p' "$1" | head -1); echo "${n:-0}"; }
 field() { sed -n "s/.*\"$2\": \\([-0-9.eE+a-z][-0-9.eE+a-z]*\\).*/\\1/p" "$1" | head -1; }
+# the last integer value of a key (JSON lines: the summary comes last)
+lastnum() { grep -o "\"$2\": *[0-9][0-9]*" "$1" | tail -1 | sed 's/.*: *//'; }
+same_zero() {
+  awk -v v="$1" 'BEGIN { exit !(v != "" && v + 0 == 0) }'
+}
 
 dev info >"$TMP/info.json"
 echo "device-test: $(tr -d '\n ' <"$TMP/info.json" | grep -o '"info":{[^}]*}')"
@@ -81,6 +86,7 @@ SAME_DIFF=$(field "$TMP/pull.json" stats_vs_same_type)
 MODEL_DIFF=$(field "$TMP/pull.json" model_vs_file_fit)
 WINDOWS=$(field "$TMP/pull.json" windows)
 echo "device-test: pulled $(field "$TMP/pull.json" values) statistic values ($WINDOWS windows): vs host f64 $STATS_DIFF (relative), vs host f32 $SAME_DIFF; model vs file fit $MODEL_DIFF"
+same_zero "$SAME_DIFF" || { echo "device-test: the pulled statistics differ from the host's f32 accumulation by $SAME_DIFF" >&2; exit 1; }
 
 # f32 on the device vs f64 on the host: free-run VAF on the noise-free validation file
 VAL=${FIXTURE_VAL:-${FIXTURE%-train.csv}-val.csv}
@@ -109,6 +115,37 @@ RATE=$(field "$TMP/speed.json" samples_per_second)
 SPEED_N=$(field "$TMP/speed.json" samples)
 echo "device-test: throughput $SPEED_FIXTURE: $SPEED_N samples at $(printf '%.0f' "$RATE") samples/s through the emulated UART"
 
+# issue 18: a drifting plant (B1 with its input matrices scaled 0.8 -> 1.2 over the record,
+# p = 1: extended statistic vector 104) with forgetting, then with a sliding window. Each
+# time the device runs its recursive estimate (a warm-started least-squares solve every
+# $DRIFT_EVERY samples), `watch --compare` replays it on the host in f32 with the core's code
+# and fails unless every reported parameter vector and one-step error is equal bit for bit;
+# then the pulled statistics must equal the host's f32 replay exactly (0 difference).
+DRIFT=${DRIFT_FIXTURE:-fixtures/b1-drift.csv}
+DRIFT_PAST=${DRIFT_PAST:-1}
+DRIFT_LAMBDA=${DRIFT_LAMBDA:-0.995}
+DRIFT_WINDOW=${DRIFT_WINDOW:-1000}
+DRIFT_EVERY=${DRIFT_EVERY:-500}
+DRIFT_FILES=""
+for mode in forgetting window; do
+  if [ "$mode" = forgetting ]; then ACC=(--forgetting "$DRIFT_LAMBDA"); else ACC=(--window "$DRIFT_WINDOW"); fi
+  dev watch "$DRIFT" --past "$DRIFT_PAST" "${ACC[@]}" --every "$DRIFT_EVERY" --lambda-ratio 0 --compare >"$TMP/watch-$mode.json"
+  # JSON lines (one per estimate, then the summary): the summary's values are the last
+  REPORTS=$(lastnum "$TMP/watch-$mode.json" reports_compared)
+  IDENT=$(lastnum "$TMP/watch-$mode.json" identical)
+  DSOLVES=$(lastnum "$TMP/watch-$mode.json" solves)
+  [ -n "$REPORTS" ] && [ "$REPORTS" -gt 0 ] && [ "$REPORTS" = "$IDENT" ] || {
+    echo "device-test: $mode: $IDENT of $REPORTS estimates equal to the host's replay" >&2; exit 1; }
+  dev pull --compare "$DRIFT" --stats-tol 1e-4 >"$TMP/pull-$mode.json"
+  D64=$(field "$TMP/pull-$mode.json" stats_vs_f64)
+  D32=$(field "$TMP/pull-$mode.json" stats_vs_same_type)
+  DWIN=$(field "$TMP/pull-$mode.json" windows)
+  same_zero "$D32" || { echo "device-test: $mode: pulled statistics differ from the host's f32 replay by $D32" >&2; exit 1; }
+  echo "device-test: drifting $DRIFT ($mode ${ACC[*]}, p = $DRIFT_PAST): $DSOLVES on-device solves, $IDENT of $REPORTS reported estimates equal to the host's f32 replay bit for bit; pulled statistics ($DWIN windows) vs host f32 $D32, vs host f64 $D64"
+  DRIFT_FILES="$DRIFT_FILES watch-$mode pull-$mode"
+done
+DRIFT_N=$(tail -n +2 "$DRIFT" | wc -l)
+
 # stack high-water mark: the firmware paints free RAM at boot; dump the top 256 KiB of RAM
 # (the stack grows down from 0x2040_0000) and find the first untouched paint word
 echo "pmemsave 0x203C0000 0x40000 \"$TMP/ram.bin\"" >&4
@@ -117,11 +154,11 @@ for _ in $(seq 50); do
   sleep 0.1
 done
 STACK=$(od -An -v -t x4 -w4 "$TMP/ram.bin" 2>/dev/null | awk '{w[NR]=$1} END {run=0; for (i=NR; i>0; i--) { if (w[i]=="a5a5a5a5") { run++; if (run==16) { print (NR-(i+15))*4; exit } } else run=0 } print "unknown"}')
-echo "device-test: firmware stack high-water mark: $STACK bytes (after configure, stream, pull, solve, push, predict)"
+echo "device-test: firmware stack high-water mark: $STACK bytes (after configure, stream, pull, solve, push, predict, track)"
 
 TOTAL_RETRIES=0
-for f in info stream pull solve push reset stream2 info2 speed; do
+for f in info stream pull solve push reset stream2 info2 speed $DRIFT_FILES; do
   TOTAL_RETRIES=$((TOTAL_RETRIES + $(retries "$TMP/$f.json")))
 done
-STREAMED=$((SAMPLES * 2 + SPEED_N))
-echo "device-test: PASS: $STREAMED samples streamed, $TOTAL_RETRIES frames retried, max statistic difference $STATS_DIFF (relative to f64 host; model output difference $MODEL_DIFF)"
+STREAMED=$((SAMPLES * 2 + SPEED_N + 2 * DRIFT_N))
+echo "device-test: PASS: $STREAMED samples streamed, $TOTAL_RETRIES frames retried, max statistic difference $STATS_DIFF (relative to f64 host; model output difference $MODEL_DIFF); drifting plant with forgetting and a window: device = host f32 bit for bit"

@@ -32,6 +32,20 @@
 //! Requirements of the paper (section 5): zeta(k) and chi(k) must not depend on eta(k) (true
 //! for the simulated-output instruments and for ARX regressors: they use p only through
 //! past samples), and eta is white and Gaussian.
+//!
+//! **Forgetting, windows and merging** (issue 18). [`BcivStats::set_forgetting`]: every
+//! accumulated sample first scales the statistics and their low parts by lambda, so
+//! Psi = sum_k lambda^(n-1-k) Psi_k and z^T y likewise (eq. (10) with weighted rows; the
+//! constant N of eq. (10) becomes the effective count sum lambda^age, which the caller takes
+//! as 1/(1 - lambda) once the record is long). A sliding window of N samples:
+//! [`crate::sliding::Sliding`] over a `BcivStats` (the [`crate::sliding::Rebase`] impl
+//! below) keeps the statistics of the last N/2 ..= N - 1 samples by rebasing the sums and
+//! their low parts every N/2 samples; the two are alternatives (a window refuses
+//! lambda < 1). Merging ([`BcivStats::merge`]) adds the other's sums as they are: exact
+//! for plain sums (the concatenated record); for forgetting statistics only between
+//! records that ran at the same time (same lambda required, neither side re-aged); two
+//! windows merge into the sum of both windows (one window of the union only if their
+//! halves cover the same samples of two sensors).
 
 use crate::arx::{arx_window_len, basis_len, for_each_monomial, write_basis, ArxDims, ArxWindow};
 use crate::error::{check_vec, Error, Field};
@@ -769,6 +783,51 @@ where
     }
 }
 
+/// A sliding window over the BC-IV statistics ([`crate::sliding::Sliding`]): the sums
+/// [sum z y; M_0; ..; M_T] and their low parts are rebased together, so the window holds
+/// the statistics of the last N/2 ..= N - 1 accumulated samples, still compensated.
+impl<T, S, W> crate::sliding::Rebase<T> for BcivStats<T, S, W>
+where
+    T: Real,
+    S: AsRef<[T]> + AsMut<[T]>,
+    W: AsRef<[T]> + AsMut<[T]>,
+{
+    fn sums_len(&self) -> usize {
+        self.sz.stats
+    }
+
+    fn rebase(&mut self, snapshot: &mut [T], count: u64) -> Result<(), Error> {
+        self.check_rebase()?;
+        let sz = self.sz;
+        if snapshot.len() < sz.stats {
+            return Err(Error::Capacity {
+                needed: sz.stats,
+                capacity: snapshot.len(),
+            });
+        }
+        // the low parts live after the configuration (comp >= stats)
+        let (head, rest) = self.data.as_mut().split_at_mut(sz.comp);
+        crate::sliding::rebase_values(
+            &mut head[..sz.stats],
+            &mut rest[..sz.stats],
+            &mut snapshot[..sz.stats],
+        );
+        self.count = count;
+        Ok(())
+    }
+
+    fn clear_sums(&mut self) {
+        self.reset();
+    }
+
+    fn check_rebase(&self) -> Result<(), Error> {
+        if self.lambda != T::ONE {
+            return Err(crate::sliding::WINDOW_AND_FORGETTING);
+        }
+        Ok(())
+    }
+}
+
 /// One sample (zeta, u, y, p) with a scalar y; a block row is [zeta (nzeta), u (r), y,
 /// p (s)]. The output says whether the sample was accumulated (window full).
 impl<T, S, W> crate::Streaming<T> for BcivStats<T, S, W>
@@ -909,6 +968,123 @@ mod tests {
         }
         assert_eq!(a.merge(&fg), Err(Error::Mismatch));
         assert!(fg.set_forgetting(0.0).is_err());
+    }
+
+    fn bciv_dims() -> BcivDims {
+        BcivDims::paper(ArxDims::new(1, 1, 2, 1, 2).unwrap()).unwrap()
+    }
+
+    fn bciv_new<T: Real>(d: BcivDims) -> BcivStats<T, Vec<T>, Vec<T>> {
+        BcivStats::new(
+            d,
+            vec![T::ZERO; d.storage_len()],
+            vec![T::ZERO; d.window_len()],
+        )
+        .unwrap()
+    }
+
+    /// Sample k as (zeta, chi, y, p) in `T` (chi of length na + nb + 1 = 4).
+    fn bciv_sample<T: Real>(d: BcivDims, k: usize) -> (Vec<T>, Vec<T>, T, [T; 1]) {
+        let f = k as f64;
+        let zeta = (0..d.nzeta)
+            .map(|i| T::of((0.3 * f + i as f64).sin()))
+            .collect();
+        let chi = (0..4).map(|i| T::of((0.7 * f - i as f64).cos())).collect();
+        (
+            zeta,
+            chi,
+            T::of((0.05 * f).sin() - 0.4),
+            [T::of(0.2 + 0.5 * (0.11 * f).cos())],
+        )
+    }
+
+    /// Largest |a - b| over the statistic values, relative to the largest |b|.
+    fn rel_diff<T: Real>(a: &[T], b: &[T]) -> f64 {
+        let scale = b.iter().fold(0.0f64, |m, v| m.max(v.to_f64().abs()));
+        a.iter()
+            .zip(b)
+            .map(|(x, y)| (x.to_f64() - y.to_f64()).abs())
+            .fold(0.0, f64::max)
+            / scale.max(1e-300)
+    }
+
+    /// A sliding window of N samples over the BC-IV statistics holds exactly the sums of
+    /// the last N/2 ..= N - 1 samples (the rebase subtracts the older half, low parts
+    /// included): checked against fresh statistics of those samples after every sample.
+    fn window_is_the_sum_of_the_last_samples<T: Real>(tol: f64) -> f64 {
+        use crate::sliding::{Rebase, Sliding};
+        let d = bciv_dims();
+        let window = 10u64;
+        let half = 5usize;
+        let mut sl = Sliding::new(bciv_new::<T>(d), window, vec![T::ZERO; d.stats_len()]).unwrap();
+        assert_eq!(sl.inner().sums_len(), d.stats_len());
+        let mut worst: f64 = 0.0;
+        for k in 0..57 {
+            let (z, c, y, p) = bciv_sample::<T>(d, k);
+            sl.update_with(|s| s.accumulate(&z, &c, y, &p).map(|_| true), |a| *a)
+                .unwrap();
+            let seen = k + 1;
+            let held = if seen < half {
+                seen
+            } else {
+                half + seen % half
+            };
+            assert_eq!(sl.inner().count() as usize, held, "after {seen}");
+            let mut fresh = bciv_new::<T>(d);
+            for j in seen - held..seen {
+                let (z, c, y, p) = bciv_sample::<T>(d, j);
+                fresh.accumulate(&z, &c, y, &p).unwrap();
+            }
+            let e = rel_diff(sl.inner().values(), fresh.values());
+            assert!(e <= tol, "after {seen}: {e:e}");
+            worst = worst.max(e);
+        }
+        // forgetting and a window are alternatives
+        let mut fg = bciv_new::<T>(d);
+        fg.set_forgetting(T::of(0.9)).unwrap();
+        assert!(Sliding::new(fg, window, vec![T::ZERO; d.stats_len()]).is_err());
+        assert!(Sliding::new(bciv_new::<T>(d), window, vec![T::ZERO; 3]).is_err());
+        worst
+    }
+
+    #[test]
+    fn bciv_window_is_the_sum_of_the_last_samples_f64_f32() {
+        let e64 = window_is_the_sum_of_the_last_samples::<f64>(1e-14);
+        // f32: a few roundings of values of the window's size (compensated sums, one
+        // subtraction per rebase)
+        let e32 = window_is_the_sum_of_the_last_samples::<f32>(4.0 * f32::EPSILON as f64);
+        std::println!("bciv window: worst relative difference f64 {e64:e}, f32 {e32:e}");
+    }
+
+    /// Forgetting weights sample k by lambda^(n - 1 - k): the forgetting statistics equal
+    /// the weighted sum of single-sample statistics, in f64 and f32.
+    fn forgetting_weights_by_age<T: Real>(tol: f64) -> f64 {
+        let d = bciv_dims();
+        let (lambda, n) = (0.8f64, 40usize);
+        let mut fg = bciv_new::<T>(d);
+        fg.set_forgetting(T::of(lambda)).unwrap();
+        let mut want = vec![0.0f64; d.stats_len()];
+        for k in 0..n {
+            let (z, c, y, p) = bciv_sample::<T>(d, k);
+            fg.accumulate(&z, &c, y, &p).unwrap();
+            let mut one = bciv_new::<T>(d);
+            one.accumulate(&z, &c, y, &p).unwrap();
+            let w = lambda.powi((n - 1 - k) as i32);
+            for (a, v) in want.iter_mut().zip(one.values()) {
+                *a += w * v.to_f64();
+            }
+        }
+        let want: Vec<T> = want.iter().map(|v| T::of(*v)).collect();
+        let e = rel_diff(fg.values(), &want);
+        assert!(e <= tol, "{e:e}");
+        e
+    }
+
+    #[test]
+    fn bciv_forgetting_weights_by_age_f64_f32() {
+        let e64 = forgetting_weights_by_age::<f64>(1e-14);
+        let e32 = forgetting_weights_by_age::<f32>(1e-5);
+        std::println!("bciv forgetting: relative difference f64 {e64:e}, f32 {e32:e}");
     }
 
     #[test]

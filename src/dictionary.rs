@@ -54,6 +54,18 @@
 //! linear maps of those moments (see `realize_from_stats` in the host for the same idea with
 //! z_k^p in place of g_k).
 //!
+//! **Forgetting, windows and merging** (issue 18). Only the normal equations accumulate;
+//! the dictionary D is fixed at the freeze and never aged. [`KernelDictionary::set_forgetting`]
+//! makes them S <- lambda S + [k; y][k; y]^T per window ([`Gram::set_forgetting`]), so
+//! [`KernelDictionary::solve`] becomes the ridge problem with rows weighted by
+//! sqrt(lambda^age); a sliding window of N windows is [`crate::sliding::Sliding`] over the
+//! frozen dictionary (the [`crate::sliding::Rebase`] impl: the last N/2 ..= N - 1 windows).
+//! They are alternatives. Merging normal equations ([`KernelDictionary::normal_equations_mut`],
+//! [`Gram::merge`]) is only meaningful with the same dictionary D (the kernel vectors are
+//! columns of K_{D,:}): then plain sums merge into the concatenated record, forgetting sums
+//! (equal lambda required) only between records that ran at the same time, and two windows
+//! into the sum of both.
+//!
 //! **State size** (values of `T`): window (p + 2)(r + l + s + 1), dictionary
 //! M (p + 1)(r + l + s + 1) + M (M + 1)/2 + M + l, normal equations (M + l)(M + l + 1)
 //! (compensated sums: two packed triangles). The closed-loop blade example (B5: r = 1,
@@ -251,6 +263,8 @@ pub struct KernelDictionary<T, SW, SD, SG> {
     dependent: u64,
     full: u64,
     max_full_residual: T,
+    /// Forgetting factor of the normal equations (applied at the freeze).
+    lambda: T,
 }
 
 impl<T, SW, SD, SG> KernelDictionary<T, SW, SD, SG>
@@ -299,6 +313,7 @@ where
             dependent: 0,
             full: 0,
             max_full_residual: T::ZERO,
+            lambda: T::ONE,
         })
     }
 
@@ -430,9 +445,34 @@ where
             storage,
             crate::stats::Summation::Compensated,
         )?;
+        let mut gram = gram;
+        gram.set_forgetting(self.lambda)?;
         self.normal = Normal::Frozen(gram);
         self.windows = 0;
         Ok(())
+    }
+
+    /// Exponential forgetting of the normal equations, lambda in (0, 1] per accumulated
+    /// window (1: plain sums): S <- lambda S + [k; y][k; y]^T ([`Gram::set_forgetting`]),
+    /// so window k of n weighs lambda^(n - 1 - k) and the ridge solve follows the recent
+    /// windows (memory about 1/(1 - lambda)). Before the freeze it is kept for the normal
+    /// equations the freeze creates; after it, it applies from the next window on. The
+    /// dictionary itself (which windows span the kernel rows) is not aged: it is fixed at
+    /// the freeze. See the module documentation for merging.
+    pub fn set_forgetting(&mut self, lambda: T) -> Result<(), Error> {
+        if !(lambda.is_finite() && lambda > T::ZERO && lambda <= T::ONE) {
+            return Err(Error::InvalidConfig("forgetting factor must be in (0, 1]"));
+        }
+        if let Normal::Frozen(g) = &mut self.normal {
+            g.set_forgetting(lambda)?;
+        }
+        self.lambda = lambda;
+        Ok(())
+    }
+
+    /// The forgetting factor (1: none).
+    pub fn forgetting(&self) -> T {
+        self.lambda
     }
 
     /// Start a new experiment: the next window needs p + 1 fresh samples (windows never
@@ -829,6 +869,46 @@ impl<T: Real, const W: usize, const D: usize, const G: usize> KernelDictionaryAr
 }
 
 /// One sample (u, y, p); a block row is [u (r), y (l), p (s)]. The output is the [`Step`].
+/// A sliding window over the normal equations ([`crate::sliding::Sliding`]), for a frozen
+/// dictionary: wrap it after [`KernelDictionary::freeze`] (the window counts accumulated
+/// windows; [`Step::Accumulated`] is what `update_with` counts). The sums are the Gram of
+/// [k; y], dimension M + l, rebased with its low parts.
+impl<T, SW, SD, SG> crate::sliding::Rebase<T> for KernelDictionary<T, SW, SD, SG>
+where
+    T: Real,
+    SW: AsRef<[T]> + AsMut<[T]>,
+    SD: AsRef<[T]> + AsMut<[T]>,
+    SG: AsRef<[T]> + AsMut<[T]>,
+{
+    fn sums_len(&self) -> usize {
+        packed_len(self.len + self.dims.l)
+    }
+
+    fn rebase(&mut self, snapshot: &mut [T], count: u64) -> Result<(), Error> {
+        match &mut self.normal {
+            Normal::Frozen(g) => crate::sliding::rebase_gram(g, Some(snapshot), count),
+            _ => Err(Error::InvalidConfig(
+                "a dictionary window starts after the freeze",
+            )),
+        }
+    }
+
+    fn clear_sums(&mut self) {
+        if let Normal::Frozen(g) = &mut self.normal {
+            g.reset();
+        }
+    }
+
+    fn check_rebase(&self) -> Result<(), Error> {
+        match &self.normal {
+            Normal::Frozen(g) => crate::sliding::Rebase::check_rebase(g),
+            _ => Err(Error::InvalidConfig(
+                "a dictionary window starts after the freeze",
+            )),
+        }
+    }
+}
+
 impl<T, SW, SD, SG> crate::Streaming<T> for KernelDictionary<T, SW, SD, SG>
 where
     T: Real,
@@ -1022,6 +1102,162 @@ mod tests {
                 "entry {i}: {x} vs {y} (scale {scale})"
             );
         }
+    }
+
+    /// A frozen dictionary over `data` (rows [u, y, 1, p], r = 1, l = 2, p = 3) in `T`, the
+    /// window broken for a second pass, and the data in `T`.
+    fn frozen_dictionary<T: Real>(n: usize) -> (Dict<T>, PbsidDims, Vec<T>) {
+        let dims = PbsidDims::new(1, 2, 1, 3).unwrap();
+        let data = lpv_data(n, 1, 2, 11);
+        let slab = Slab::new(&data, 1, 2, 2).unwrap();
+        let k00 = dual_kernel(&slab, 0, &slab, 0, dims.p, true);
+        let mut dct = dict::<T>(dims, DictionaryConfig::new(12, T::of(0.05 * k00), true));
+        feed(&mut dct, &data, dims, 0, n);
+        assert!(dct.len() >= 4, "{}", dct.len());
+        dct.freeze().unwrap();
+        dct.break_window();
+        let dt = data.iter().map(|v| T::of(*v)).collect();
+        (dct, dims, dt)
+    }
+
+    /// The vectors [k_D(w_b); y_{b+p}] of every window b of `data`, in `T`, as the
+    /// accumulation computes them (`kernel_vector` over the same stored windows).
+    fn window_vectors<T: Real>(dct: &Dict<T>, dims: PbsidDims, data: &[T]) -> Vec<Vec<T>> {
+        let slab = Slab::new(data, dims.r, dims.l, dims.m()).unwrap();
+        let m = dct.len();
+        (0..slab.len() - dims.p)
+            .map(|b| {
+                let mut v = vec![T::ZERO; m + dims.l];
+                dct.kernel_vector(&slab, b, &mut v[..m]).unwrap();
+                v[m..].copy_from_slice(slab.y(b + dims.p));
+                v
+            })
+            .collect()
+    }
+
+    /// Largest difference of a Gram's entries from `want` (packed, f64), each relative to
+    /// sqrt(want_ii want_jj).
+    fn gram_rel_diff<T: Real>(g: &Gram<T, Vec<T>>, want: &[f64]) -> f64 {
+        let dim = g.dim();
+        let diag = |i: usize| want[packed_len(dim) - packed_len(dim - i)];
+        let mut worst: f64 = 0.0;
+        let mut o = 0;
+        for i in 0..dim {
+            for j in i..dim {
+                let scale = (diag(i) * diag(j)).sqrt().max(1e-300);
+                worst = worst.max((g.packed()[o].to_f64() - want[o]).abs() / scale);
+                o += 1;
+            }
+        }
+        worst
+    }
+
+    /// sum over `vecs` of weight(k) v v^T, packed, in f64.
+    fn weighted_gram<T: Real>(vecs: &[Vec<T>], weight: impl Fn(usize) -> f64) -> Vec<f64> {
+        let dim = vecs[0].len();
+        let mut out = vec![0.0f64; packed_len(dim)];
+        for (k, v) in vecs.iter().enumerate() {
+            let w = weight(k);
+            let mut o = 0;
+            for i in 0..dim {
+                for j in i..dim {
+                    out[o] += w * v[i].to_f64() * v[j].to_f64();
+                    o += 1;
+                }
+            }
+        }
+        out
+    }
+
+    /// Forgetting on the dictionary's normal equations weights window k of n by
+    /// lambda^(n - 1 - k), set before or after the freeze; a sliding window of N holds
+    /// exactly the last N/2 ..= N - 1 windows (checked after every window). f64 and f32.
+    fn forgetting_and_window<T: Real>(tol: f64) -> (f64, f64) {
+        use crate::sliding::{Rebase, Sliding};
+        let n = 160;
+        let (dct, dims, data) = frozen_dictionary::<T>(n);
+        let vecs = window_vectors(&dct, dims, &data);
+        let nbar = vecs.len();
+        let w = dims.sample_len();
+        let row = |k: usize| &data[k * w..(k + 1) * w];
+        let (r, l) = (dims.r, dims.l);
+        // forgetting
+        let lambda = 0.95f64;
+        let mut fg = dct.clone();
+        fg.set_forgetting(T::of(lambda)).unwrap();
+        assert_eq!(fg.forgetting(), T::of(lambda));
+        for k in 0..n {
+            let x = row(k);
+            fg.update(&x[..r], &x[r..r + l], &x[r + l + 1..]).unwrap();
+        }
+        let g = fg.normal_equations().unwrap();
+        assert_eq!(g.count(), nbar as u64);
+        let lam = T::of(lambda).to_f64();
+        let want = weighted_gram(&vecs, |k| lam.powi((nbar - 1 - k) as i32));
+        let ef = gram_rel_diff(g, &want);
+        assert!(ef <= tol, "forgetting {ef:e}");
+        assert!(fg.set_forgetting(T::ZERO).is_err());
+        // sliding window of 20 windows (half 10)
+        let half = 10usize;
+        let mut sl = Sliding::new(dct.clone(), 20, vec![T::ZERO; packed_len(12 + l)]).unwrap();
+        assert_eq!(sl.inner().sums_len(), packed_len(dct.len() + l));
+        let mut ew: f64 = 0.0;
+        let mut seen = 0usize;
+        for k in 0..n {
+            let x = row(k);
+            let step = sl
+                .update_with(
+                    |d| d.update(&x[..r], &x[r..r + l], &x[r + l + 1..]),
+                    |s| matches!(s, Step::Accumulated { .. }),
+                )
+                .unwrap();
+            if !matches!(step, Step::Accumulated { .. }) {
+                continue;
+            }
+            seen += 1;
+            let held = if seen < half {
+                seen
+            } else {
+                half + seen % half
+            };
+            let g = sl.inner().normal_equations().unwrap();
+            assert_eq!(g.count() as usize, held, "after {seen}");
+            let want = weighted_gram(&vecs, |j| {
+                if j + held >= seen && j < seen {
+                    1.0
+                } else {
+                    0.0
+                }
+            });
+            let e = gram_rel_diff(g, &want);
+            assert!(e <= tol, "window after {seen}: {e:e}");
+            ew = ew.max(e);
+        }
+        assert_eq!(seen, nbar);
+        // forgetting and a window are alternatives; a window needs the freeze
+        assert!(Sliding::new(fg, 20, vec![T::ZERO; packed_len(12 + l)]).is_err());
+        let building = dict::<T>(dims, DictionaryConfig::new(12, T::ONE, true));
+        assert!(Sliding::new(building, 20, vec![T::ZERO; packed_len(12 + l)]).is_err());
+        (ef, ew)
+    }
+
+    #[test]
+    fn dictionary_forgetting_and_window_f64_f32() {
+        let e64 = forgetting_and_window::<f64>(1e-13);
+        let e32 = forgetting_and_window::<f32>(2e-6);
+        std::println!(
+            "dictionary (forgetting, window) worst relative difference: f64 {e64:?}, f32 {e32:?}"
+        );
+    }
+
+    /// Setting forgetting before the freeze carries it into the normal equations.
+    #[test]
+    fn dictionary_forgetting_set_before_the_freeze() {
+        let dims = PbsidDims::new(1, 2, 1, 3).unwrap();
+        let mut dct = dict::<f64>(dims, DictionaryConfig::new(4, 0.0, true));
+        dct.set_forgetting(0.5).unwrap();
+        dct.freeze().unwrap();
+        assert_eq!(dct.normal_equations().unwrap().forgetting(), 0.5);
     }
 
     #[test]

@@ -4,8 +4,19 @@
 //! same sum over the last N/2 to N vectors; no sample is ever subtracted, so nothing
 //! cancels catastrophically in f32.
 //!
-//! Size: two Gram storages (each `packed_len(dim)`, or [`crate::gram_storage_len`] for
-//! compensated sums).
+//! Two forms: [`SlidingGram`] (two Gram storages, each `packed_len(dim)`, or
+//! [`crate::gram_storage_len`] for compensated sums) and windows by rebasing ([`HalfWindow`],
+//! [`Rebase`], [`Sliding`]: one accumulator plus one snapshot of its sums), implemented for
+//! every accumulator of the core: [`Gram`], [`crate::PbsidStats`],
+//! [`crate::bciv::BcivStats`] and [`crate::dictionary::KernelDictionary`] (normal
+//! equations). The device keeps its window this way, the snapshot in the Gram's spare
+//! storage.
+//!
+//! **Merge semantics.** A windowed accumulator holds plain sums over its last N/2 ..= N - 1
+//! vectors, so merging two adds their windows: the window of the union only when both hold
+//! the same time span (two sensors of one plant, counted by the same clock). Windows and
+//! forgetting are alternatives ([`Rebase::check_rebase`] refuses lambda < 1); forgetting
+//! statistics merge only with the same lambda and as they are (see [`crate::stats`]).
 
 use crate::error::Error;
 use crate::real::Real;
@@ -134,8 +145,9 @@ impl HalfWindow {
     }
 }
 
-/// totals <- totals (+ low parts) - snapshot, snapshot <- totals; the low parts restart at 0.
-fn rebase_values<T: Real>(hi: &mut [T], lo: &mut [T], snapshot: &mut [T]) {
+/// totals <- totals (+ low parts) - snapshot, snapshot <- totals; the low parts restart at 0
+/// (`lo` empty: plain totals). Shared by every [`Rebase`] implementation.
+pub(crate) fn rebase_values<T: Real>(hi: &mut [T], lo: &mut [T], snapshot: &mut [T]) {
     let comp = !lo.is_empty();
     for (k, (h, s)) in hi.iter_mut().zip(snapshot.iter_mut()).enumerate() {
         let mut v = *h - *s;
@@ -159,9 +171,7 @@ pub fn rebase_gram<T: Real, S: AsRef<[T]> + AsMut<[T]>>(
     count: u64,
 ) -> Result<(), Error> {
     if g.forgetting() != T::ONE {
-        return Err(Error::InvalidConfig(
-            "a sliding window and forgetting are alternatives",
-        ));
+        return Err(WINDOW_AND_FORGETTING);
     }
     let n = crate::stats::packed_len(g.dim());
     let (hi, lo, spare) = g.storage_parts();
@@ -193,6 +203,10 @@ pub const fn inline_window_len(dim: usize, compensated: bool) -> usize {
 }
 
 /// An accumulator whose sums can be rebased for a sliding window ([`HalfWindow`]).
+///
+/// Implemented for [`Gram`], [`crate::PbsidStats`], [`crate::bciv::BcivStats`] (its
+/// statistics sum z y and M_t and their low parts) and
+/// [`crate::dictionary::KernelDictionary`] (its normal equations, once frozen).
 pub trait Rebase<T> {
     /// Values of the sums (the snapshot's length).
     fn sums_len(&self) -> usize;
@@ -200,7 +214,17 @@ pub trait Rebase<T> {
     fn rebase(&mut self, snapshot: &mut [T], count: u64) -> Result<(), Error>;
     /// Empty the sums (configuration kept).
     fn clear_sums(&mut self);
+    /// Whether the sums can be rebased at all: `Err` with forgetting (lambda < 1: the
+    /// snapshot would have to age with the sums), or while a dictionary is still building.
+    /// [`Sliding::new`] checks it, so a rebase inside an update does not fail.
+    fn check_rebase(&self) -> Result<(), Error> {
+        Ok(())
+    }
 }
+
+/// The error of a window over forgetting statistics.
+pub(crate) const WINDOW_AND_FORGETTING: Error =
+    Error::InvalidConfig("a sliding window and forgetting are alternatives");
 
 impl<T: Real, S: AsRef<[T]> + AsMut<[T]>> Rebase<T> for Gram<T, S> {
     fn sums_len(&self) -> usize {
@@ -211,6 +235,12 @@ impl<T: Real, S: AsRef<[T]> + AsMut<[T]>> Rebase<T> for Gram<T, S> {
     }
     fn clear_sums(&mut self) {
         self.reset();
+    }
+    fn check_rebase(&self) -> Result<(), Error> {
+        if self.forgetting() != T::ONE {
+            return Err(WINDOW_AND_FORGETTING);
+        }
+        Ok(())
     }
 }
 
@@ -229,6 +259,9 @@ where
     }
     fn clear_sums(&mut self) {
         self.gram_mut().reset();
+    }
+    fn check_rebase(&self) -> Result<(), Error> {
+        self.gram().check_rebase()
     }
 }
 
@@ -257,9 +290,11 @@ impl<T, A, S> Sliding<T, A, S> {
 
 impl<T: Real, A: Rebase<T>, S: AsRef<[T]> + AsMut<[T]>> Sliding<T, A, S> {
     /// A window of `window` vectors (>= 2) over `inner`, which is emptied; `snapshot` must
-    /// hold `inner.sums_len()` values.
+    /// hold `inner.sums_len()` values. Fails if `inner` cannot be rebased
+    /// ([`Rebase::check_rebase`]: forgetting, or a dictionary still building).
     pub fn new(mut inner: A, window: u64, mut snapshot: S) -> Result<Self, Error> {
         let win = HalfWindow::new(window)?;
+        inner.check_rebase()?;
         let n = inner.sums_len();
         let cap = snapshot.as_ref().len();
         if cap < n {

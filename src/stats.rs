@@ -54,9 +54,9 @@
 //! records that ran at the same time (two sensors of one plant, both weighted by the same
 //! clock): [`Gram::merge`] therefore requires equal lambdas (`Error::Mismatch` otherwise)
 //! and does not re-age either side. A record that ended earlier must be aged by the caller
-//! first. [`crate::SlidingGram`] keeps the last N/2 + 1 ..= N vectors with two half-window
-//! Grams taking turns; it is built for a bare Gram (a PbsidStats window over it, and
-//! windows for BcivStats and the dictionary, are not done).
+//! first. Sliding windows: [`crate::sliding`] (rebasing, [`crate::sliding::Rebase`] for
+//! Gram, PbsidStats, BcivStats and the kernel dictionary's normal equations) and
+//! [`crate::SlidingGram`] (two half-window Grams taking turns).
 
 use core::mem::MaybeUninit;
 use core::ptr::addr_of_mut;

@@ -14,6 +14,37 @@ use std::path::{Path, PathBuf};
 
 use lpvid_host::lpvss::Signals;
 use lpvid_host::systems::{b1, b2, b3, b6};
+use nalgebra::DVector;
+
+/// B1 whose local input matrices drift (issue 18, the device's forgetting check): the
+/// signals of `b1(n, sigma, seed)` (inputs, scheduling, innovation) re-simulated with every
+/// B^(i) scaled by g(k) = 0.8 + 0.4 k / (n - 1), a gain rising from 0.8 to 1.2 over the
+/// record (A, K, C untouched: the plant stays stable and keeps its innovation form).
+/// The innovation is recovered from the seeded record as e = y - (one-step prediction of
+/// the true model), so it is the generator's e up to rounding.
+fn b1_drift(n: usize, sigma: f64, seed: u64) -> Signals {
+    let e1 = b1(n, sigma, seed);
+    let truth = e1.truth.expect("b1 has its true model");
+    let mut sig = e1.train;
+    let e = &sig.y - truth.predict(&sig);
+    let nx = truth.a[0].nrows();
+    let mut x = DVector::<f64>::zeros(nx);
+    for k in 0..n {
+        let mu = sig.mu(k);
+        let u = sig.u.row(k).transpose();
+        let ek = e.row(k).transpose();
+        // D = 0, C constant
+        let y = &truth.c[0] * &x + &ek;
+        sig.y.set_row(k, &y.transpose());
+        let g = 0.8 + 0.4 * k as f64 / (n - 1).max(1) as f64;
+        let mut xn = DVector::<f64>::zeros(nx);
+        for i in 0..truth.a.len() {
+            xn += (&truth.a[i] * &x + &truth.b[i] * &u * g + &truth.k[i] * &ek) * mu[i];
+        }
+        x = xn;
+    }
+    sig
+}
 
 /// Shortest round-trip text of an f64: plain decimal for moderate magnitudes, exponent form
 /// otherwise (both parse back exactly with `str::parse::<f64>`).
@@ -95,6 +126,10 @@ fn main() {
     total += write(&dir, "b6-train.csv", &train);
     total += write(&dir, "b6-calib.csv", &calib);
     total += write(&dir, "b6-val.csv", &val);
+
+    // B1 with input matrices drifting 0.8 -> 1.2, N = 4000, sigma = 0.05, seed 2 (the
+    // device's forgetting and sliding-window check in `make device-test`)
+    total += write(&dir, "b1-drift.csv", &b1_drift(4000, 0.05, 2));
 
     println!("{total:>10} bytes in total");
 }
