@@ -15,11 +15,10 @@ use std::fs::File;
 use std::io::{BufRead, BufReader};
 use std::path::Path;
 
-use nalgebra::DVector;
 use serde_json::json;
 
 use crate::data::{Dataset, MAX_LINE_BYTES};
-use crate::lpvss::{scheduled, LpvSs, Signals};
+use crate::lpvss::{LpvSs, Signals};
 use crate::model::{describe, ModelFile, ModelKind, SignalMap};
 use crate::observer;
 use crate::pbsid::stream::{streamable, PassOne};
@@ -178,7 +177,13 @@ fn for_each_chunk(
 /// [`crate::simulate::score`] from running sums (VAF and BFR per output).
 struct FreeRun<'a> {
     model: &'a LpvSs,
-    x: DVector<f64>,
+    /// The state, its successor, mu_k and u_k, y_k: the step's whole memory
+    /// ([`LpvSs::output_into`], [`LpvSs::state_into`]).
+    x: Vec<f64>,
+    xn: Vec<f64>,
+    mu: Vec<f64>,
+    u: Vec<f64>,
+    yk: Vec<f64>,
     k: usize,
     stopped: bool,
     diverged_at: Option<usize>,
@@ -191,9 +196,15 @@ struct FreeRun<'a> {
 impl<'a> FreeRun<'a> {
     fn new(model: &'a LpvSs) -> FreeRun<'a> {
         let l = model.l();
+        let mut mu = vec![0.0; model.m()];
+        mu[0] = 1.0;
         FreeRun {
             model,
-            x: DVector::zeros(model.n()),
+            x: vec![0.0; model.n()],
+            xn: vec![0.0; model.n()],
+            mu,
+            u: vec![0.0; model.r()],
+            yk: vec![0.0; l],
             k: 0,
             stopped: false,
             diverged_at: None,
@@ -205,36 +216,36 @@ impl<'a> FreeRun<'a> {
 
     fn update(&mut self, sig: &Signals) {
         let m = self.model;
+        let s = sig.p.ncols().min(m.m() - 1);
         for k in 0..sig.len() {
             let n = (self.k + 1) as f64;
-            let mu = sig.mu(k);
-            let u = sig.u.row(k).transpose();
-            let yk = if self.stopped {
-                DVector::from_element(m.l(), f64::NAN)
+            for q in 0..s {
+                self.mu[q + 1] = sig.p[(k, q)];
+            }
+            for (j, v) in self.u.iter_mut().enumerate() {
+                *v = sig.u[(k, j)];
+            }
+            if self.stopped {
+                self.yk.iter_mut().for_each(|v| *v = f64::NAN);
             } else {
-                &scheduled(&m.c, &mu) * &self.x + &scheduled(&m.d, &mu) * &u
-            };
-            if self.diverged_at.is_none() && yk.iter().any(|v| !v.is_finite() || v.abs() > DIVERGED)
+                m.output_into(&self.mu, &self.x, &self.u, &mut self.yk);
+            }
+            if self.diverged_at.is_none()
+                && self.yk.iter().any(|v| !v.is_finite() || v.abs() > DIVERGED)
             {
                 self.diverged_at = Some(self.k);
             }
             for j in 0..m.l() {
                 let yv = sig.y[(k, j)];
-                let e = yv - yk[j];
+                let e = yv - self.yk[j];
                 welford(&mut self.y[j], yv, n);
                 welford(&mut self.err[j], e, n);
                 self.sse[j] += e * e;
             }
             if !self.stopped {
-                let mut xn = DVector::<f64>::zeros(m.n());
-                for i in 0..m.m() {
-                    let w = mu[i];
-                    if w != 0.0 {
-                        xn += (&m.a[i] * &self.x + &m.b[i] * &u) * w;
-                    }
-                }
-                self.x = xn;
-                if !self.x.iter().all(|v| v.is_finite()) || self.x.amax() > 1e150 {
+                m.state_into(&self.mu, &self.x, &self.u, None, &mut self.xn);
+                std::mem::swap(&mut self.x, &mut self.xn);
+                if self.x.iter().any(|v| !v.is_finite() || v.abs() > 1e150) {
                     self.stopped = true;
                 }
             }
