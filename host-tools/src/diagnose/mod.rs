@@ -458,7 +458,12 @@ pub fn diagnose_with_progress(
         }
         // a short held-out record: the batch test of the held-out data pooled with the two
         // cross folds of the training halves (effects::cross_fold), which also replicate
-        let short = effects::short_record(base_eval.loss(Mode::FreeRun).len());
+        let could = |b: &(Effect, usize, usize)| {
+            let s = &scored[b.1];
+            s.error.is_none() && s.explained >= effects::MIN_EXPLAINED
+        };
+        let short =
+            effects::short_record(base_eval.loss(Mode::FreeRun).len()) && best.iter().any(could);
         let mut pooled: Vec<Option<(f64, f64)>> = vec![None; best.len()];
         let mut replication: Vec<Option<Vec<(f64, f64)>>> = vec![None; best.len()];
         if short {
@@ -473,10 +478,10 @@ pub fn diagnose_with_progress(
             if nulls.iter().all(Option::is_some) {
                 let nulls: Vec<Eval> = nulls.into_iter().flatten().collect();
                 for (j, b) in best.iter().enumerate() {
-                    let s = &scored[b.1];
-                    if s.error.is_some() || s.explained < effects::MIN_EXPLAINED {
+                    if !could(b) {
                         continue;
                     }
+                    let s = &scored[b.1];
                     let folds = effects::cross_fold(&s.cand, &halves, &nulls, &current.fit);
                     pooled[j] = Some(effects::pooled_p(&s.ratios, &folds));
                     replication[j] = Some(folds.iter().map(|f| (f.explained, f.p_value)).collect());
