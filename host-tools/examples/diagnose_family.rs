@@ -1,7 +1,8 @@
 //! The family benchmark of `lpvid diagnose`: random plants per planted effect, the confusion
 //! matrix (how often each effect was named first) and the error ratio after `--fix`.
 //! `cargo run --release -p lpvid-host --example diagnose_family -- [seeds per effect] [N]
-//! [first seed]` (defaults 10, 2000, 1000). The figures are in docs/bench-diagnose.md.
+//! [first seed] [held-out samples] [effects, comma-separated]` (defaults 10, 2000, 1000, N,
+//! all). The figures are in docs/bench-diagnose.md.
 
 #[path = "../tests/diagnose_support/family.rs"]
 mod family;
@@ -13,10 +14,19 @@ fn main() {
     let seeds: u64 = args.get(1).and_then(|s| s.parse().ok()).unwrap_or(10);
     let n: usize = args.get(2).and_then(|s| s.parse().ok()).unwrap_or(2000);
     let first: u64 = args.get(3).and_then(|s| s.parse().ok()).unwrap_or(1000);
+    let val_len: Option<usize> = args.get(4).and_then(|s| s.parse().ok());
+    let effects: Vec<&str> = match args.get(5) {
+        Some(list) => FAMILY_EFFECTS
+            .iter()
+            .copied()
+            .filter(|e| list.split(',').any(|w| w == *e))
+            .collect(),
+        None => FAMILY_EFFECTS.to_vec(),
+    };
     let threads = std::thread::available_parallelism().map_or(1, |v| v.get());
     let seeds: Vec<u64> = (first..first + seeds).collect();
     let t0 = std::time::Instant::now();
-    let runs = family::run_family(&FAMILY_EFFECTS, &seeds, n, threads);
+    let runs = family::run_family_with(&effects, &seeds, n, threads, val_len);
     for r in &runs {
         println!(
             "{:<24} seed {:>5}: named {:<24} ratio {:>8.2}  ({})",

@@ -289,7 +289,9 @@ pub struct MapFit {
 /// refinement runs through the feedback ([`crate::refine::refine_d_columns`], D refined in
 /// the constant channels and, with `opts.feedthrough`, the others that may have one), which
 /// is what turns the PBSID start into a fit of the nonlinear loop. A channel reading the
-/// output at the same sample keeps a zero D column.
+/// output at the same sample keeps a zero D column. With `opts.refine` the refinement runs
+/// for any map (it replaces PBSID's own): the same estimator for a map without feedback, the
+/// null structure diagnose compares an own-output candidate with.
 pub fn fit_map(
     map: &SignalMap,
     ds: &Dataset,
@@ -333,7 +335,15 @@ pub fn fit_map(
             sub.y.column_mut(j).add_scalar_mut(-*m);
         }
     }
-    let fit = pbsid::fit(&sub, opts).map_err(fit_err)?;
+    // the refinement below replaces PBSID's own (`opts.refine`)
+    let fit = pbsid::fit(
+        &sub,
+        &PbsidOptions {
+            refine: false,
+            ..opts.clone()
+        },
+    )
+    .map_err(fit_err)?;
     let fm = &fit.model;
     let n = fm.n();
     let l = fm.l();
@@ -387,7 +397,7 @@ pub fn fit_map(
         }
     }
     let mut refinement = None;
-    if refine_iters > 0 && (!fb.is_empty() || !cst.is_empty()) {
+    if refine_iters > 0 && (!fb.is_empty() || !cst.is_empty() || opts.refine) {
         let d_cols: Vec<usize> = (0..r)
             .filter(|j| !now.contains(j) && (cst.contains(j) || opts.feedthrough))
             .collect();

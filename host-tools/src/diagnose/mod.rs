@@ -25,7 +25,7 @@ use serde::Serialize;
 
 use crate::data::{DataError, Dataset};
 use crate::model::ModelFile;
-use crate::simulate::{score as score_model, Mode, Score};
+use crate::simulate::{score_from, Mode, Score, X0};
 
 use effects::{candidates, evidence, significant, Context, Effect, Eval, Finding, Scored};
 use refit::{fit_spec, Fitted, Spec};
@@ -200,7 +200,7 @@ pub struct Outcome {
 }
 
 fn mean_vaf(e: &Eval) -> f64 {
-    let v = crate::metrics::vaf_per_output(&e.y, &e.yhat_free, 0);
+    let v = crate::metrics::vaf_per_output(&e.y, &e.yhat_free, e.skip);
     crate::metrics::mean(&v)
 }
 
@@ -229,6 +229,26 @@ fn score_all(
         threads
     }
     .clamp(1, cands.len().max(1));
+    // the null structures some candidates are compared with instead of the model's own
+    // (the BC-IV fit without its correction, the refined fit of an own-output candidate's
+    // structure): refit once per distinct structure, not once per candidate
+    // (structure, its free-run and one-step held-out losses)
+    type NullLoss = (String, (Vec<f64>, Vec<f64>));
+    let mut nulls: Vec<NullLoss> = Vec::new();
+    for c in &cands {
+        let Some(ns) = &c.null else { continue };
+        let key = format!("{ns:?}");
+        if nulls.iter().any(|(k, _)| *k == key) {
+            continue;
+        }
+        // a null that cannot be refit is left to `effects::score`, which reports why
+        if let Some(e) = fit_spec(ns, train, fit)
+            .ok()
+            .and_then(|f| Eval::new(&f.model, val).ok())
+        {
+            nulls.push((key, (e.loss(Mode::FreeRun), e.loss(Mode::Predictor))));
+        }
+    }
     let jobs: Vec<(usize, effects::Candidate)> = cands.into_iter().enumerate().collect();
     let next = std::sync::atomic::AtomicUsize::new(0);
     let mut results: Vec<Option<Scored>> = vec![None; jobs.len()];
@@ -240,12 +260,22 @@ fn score_all(
                 if i >= jobs.len() {
                     break;
                 }
-                let c = jobs[i].1.clone();
+                let mut c = jobs[i].1.clone();
+                let own = c.null.as_ref().and_then(|ns| {
+                    let key = format!("{ns:?}");
+                    nulls.iter().find(|(k, _)| *k == key).map(|(_, l)| l)
+                });
+                let (lf, lp) = own.map_or((&loss_free, &loss_pred), |l| (&l.0, &l.1));
                 let loss0 = match c.effect.metric() {
-                    Mode::FreeRun => &loss_free,
-                    Mode::Predictor => &loss_pred,
+                    Mode::FreeRun => lf,
+                    Mode::Predictor => lp,
                 };
-                let sc = effects::score(c, train, val, fit, loss0);
+                // the null's loss is given: score against it without refitting it
+                let null = if own.is_some() { c.null.take() } else { None };
+                let mut sc = effects::score(c, train, val, fit, loss0);
+                if null.is_some() {
+                    sc.cand.null = null;
+                }
                 let done = {
                     let mut slots = out.lock().expect("no panics while holding the lock");
                     slots[jobs[i].0] = Some(sc);
@@ -264,7 +294,7 @@ fn threshold() -> Threshold {
     Threshold {
         alpha: ALPHA,
         min_explained: effects::MIN_EXPLAINED,
-        test: "explained >= min_explained and a one-sided t test of the per-batch log ratio of held-out squared errors (20 batches) at level alpha / (variants tried), replicated on each half of the training data (explained > 0, p < 0.05 each)",
+        test: "explained >= min_explained and a one-sided t test of the per-batch log ratio of held-out squared errors (free run from an initial state estimated on the first held-out samples, which are not scored; up to 20 batches of >= 25 samples) at level alpha / (variants tried), replicated on each half of the training data (explained > 0, p < 0.05 each); a short held-out record (fewer than 20 batches) pools its batches with those of the two cross folds of the training halves (refit on one half, scored on the other), and the folds are the replication",
     }
 }
 
@@ -292,8 +322,14 @@ pub fn diagnose_with_progress(
 ) -> Result<Outcome, DiagnoseError> {
     let mut notes = Vec::new();
     let mut spec = Spec::from_model(model, &mut notes)?;
-    let before = score_model(model, val, Mode::FreeRun)?;
-    let before_one_step = score_model(model, val, Mode::Predictor)?;
+    // scored as the candidates are: from an initial state estimated on the first held-out
+    // samples (effects::x0_samples), which are then not scored
+    let x0 = X0::Estimate {
+        samples: effects::x0_samples(val.len()),
+    };
+    let score_model = |m: &ModelFile, mode: Mode| score_from(m, val, mode, x0);
+    let before = score_model(model, Mode::FreeRun)?;
+    let before_one_step = score_model(model, Mode::Predictor)?;
     let before_eval = Eval::new(model, val)?;
     let free0 = analyse(
         "free-run",
@@ -420,17 +456,50 @@ pub fn diagnose_with_progress(
                 None => best.push((s.cand.effect, i, 1)),
             }
         }
+        // a short held-out record: the batch test of the held-out data pooled with the two
+        // cross folds of the training halves (effects::cross_fold), which also replicate
+        let could = |b: &(Effect, usize, usize)| {
+            let s = &scored[b.1];
+            s.error.is_none() && s.explained >= effects::MIN_EXPLAINED
+        };
+        let short =
+            effects::short_record(base_eval.loss(Mode::FreeRun).len()) && best.iter().any(could);
+        let mut pooled: Vec<Option<(f64, f64)>> = vec![None; best.len()];
+        let mut replication: Vec<Option<Vec<(f64, f64)>>> = vec![None; best.len()];
+        if short {
+            let halves = effects::halves(train);
+            let nulls: Vec<Option<Eval>> = (0..2)
+                .map(|i| {
+                    fit_spec(&spec, &halves[i], &current.fit)
+                        .ok()
+                        .and_then(|f| Eval::new(&f.model, &halves[1 - i]).ok())
+                })
+                .collect();
+            if nulls.iter().all(Option::is_some) {
+                let nulls: Vec<Eval> = nulls.into_iter().flatten().collect();
+                for (j, b) in best.iter().enumerate() {
+                    if !could(b) {
+                        continue;
+                    }
+                    let s = &scored[b.1];
+                    let folds = effects::cross_fold(&s.cand, &halves, &nulls, &current.fit);
+                    pooled[j] = Some(effects::pooled_p(&s.ratios, &folds));
+                    replication[j] = Some(folds.iter().map(|f| (f.explained, f.p_value)).collect());
+                }
+            } else {
+                notes.push("the null structure cannot be refit on half of the training data: the short held-out record's test is not pooled with cross folds".into());
+            }
+        }
+        let p_of = |j: usize| pooled[j].map_or(scored[best[j].1].p_value, |x| x.1);
+        let t_of = |j: usize| pooled[j].map_or(scored[best[j].1].t, |x| x.0);
         // the noise threshold: significant on the full training data, then replicated on
         // each independent half of it (see effects::REPLICATION_ALPHA)
         let full_sig: Vec<bool> = best
             .iter()
-            .map(|b| {
-                let s = &scored[b.1];
-                significant(s.explained, s.p_value, tried)
-            })
+            .enumerate()
+            .map(|(j, b)| significant(scored[b.1].explained, p_of(j), tried))
             .collect();
-        let mut replication: Vec<Option<Vec<(f64, f64)>>> = vec![None; best.len()];
-        if full_sig.iter().any(|v| *v) {
+        if !short && full_sig.iter().any(|v| *v) {
             let halves = effects::halves(train);
             let nulls: Vec<Option<Eval>> = halves
                 .iter()
@@ -486,7 +555,13 @@ pub fn diagnose_with_progress(
                 if let Some(e) = &s.error {
                     ev.push(format!("the refit failed: {e}"));
                 }
-                if let Some(r) = &replication[j] {
+                if let (Some(r), Some((_, p))) = (&replication[j], pooled[j]) {
+                    ev.push(format!(
+                        "short held-out record: refit on each half of the training data and scored on the other half, it explains {} of the null's error there (p = {}); pooled with the held-out batches p = {p:.1e}",
+                        r.iter().map(|x| format!("{:.1} %", 100.0 * x.0)).collect::<Vec<_>>().join(" and "),
+                        r.iter().map(|x| format!("{:.1e}", x.1)).collect::<Vec<_>>().join(", ")
+                    ));
+                } else if let Some(r) = &replication[j] {
                     ev.push(format!(
                         "refit on each half of the training data: explains {} of the held-out error (p = {})",
                         r.iter().map(|x| format!("{:.1} %", 100.0 * x.0)).collect::<Vec<_>>().join(" and "),
@@ -498,8 +573,8 @@ pub fn diagnose_with_progress(
                     detail: s.cand.detail.clone(),
                     explained,
                     residual: mode_name(effect.metric()),
-                    t: s.t,
-                    p_value: s.p_value,
+                    t: t_of(j),
+                    p_value: p_of(j),
                     significant: sig[j] && explained >= effects::MIN_EXPLAINED,
                     replication: replication[j].as_ref().map(|r| r.iter().map(|x| x.0).collect()),
                     vaf: s.eval.as_ref().map(mean_vaf),
@@ -536,7 +611,8 @@ pub fn diagnose_with_progress(
                 format!("p = {:.2e} is not below {p_max:.1e}", f.p_value)
             } else if let Some(r) = rep.filter(|r| !effects::replicated(r)) {
                 format!(
-                    "it is not replicated on the two halves of the training data (explains {}, p = {}; each half needs explained > 0 and p < {})",
+                    "it is not replicated on the two halves of the training data ({}explains {}, p = {}; each half needs explained > 0 and p < {})",
+                    if short { "refit on each half and scored on the other: " } else { "" },
                     r.iter().map(|x| format!("{:.1} %", 100.0 * x.0)).collect::<Vec<_>>().join(" and "),
                     r.iter().map(|x| format!("{:.1e}", x.1)).collect::<Vec<_>>().join(", "),
                     effects::REPLICATION_ALPHA
@@ -652,8 +728,8 @@ pub fn diagnose_with_progress(
         (None, None, None)
     } else {
         (
-            Some(score_model(&current, val, Mode::FreeRun)?),
-            Some(score_model(&current, val, Mode::Predictor)?),
+            Some(score_model(&current, Mode::FreeRun)?),
+            Some(score_model(&current, Mode::Predictor)?),
             Some(Eval::new(&current, val)?),
         )
     };

@@ -141,12 +141,14 @@ pub fn fit(spec: &Spec, train: &Dataset, base_fit: &Value) -> Result<Fitted, Ref
     let np = (m * n * (n + r) + l * n + n) as f64;
     let budget = 5e9 / (np * np * (train.len() * l) as f64);
     let iters = (budget as usize).clamp(5, REFINE_ITERATIONS);
-    let mf =
-        crate::pipeline::fit_map(&spec.signals, train, &spec.opts, iters).map_err(|e| match e {
-            Error::Data(d) => RefitError::Data(d),
-            Error::Fit { source, .. } => RefitError::Fit(source),
-            other => RefitError::Numerical(other.to_string()),
-        })?;
+    let mut opts = spec.opts.clone();
+    // the null structure of a candidate: refined the same way (refit::Spec::refined)
+    opts.refine |= spec.refined;
+    let mf = crate::pipeline::fit_map(&spec.signals, train, &opts, iters).map_err(|e| match e {
+        Error::Data(d) => RefitError::Data(d),
+        Error::Fit { source, .. } => RefitError::Fit(source),
+        other => RefitError::Numerical(other.to_string()),
+    })?;
     let mut rec = match base_fit {
         Value::Object(m) => m.clone(),
         _ => Map::new(),

@@ -84,6 +84,10 @@ pub struct Spec {
     pub noise: Noise,
     /// When set, the model is an LPV-ARX model fitted by BC-IV (scheduling-noise path).
     pub arx: Option<ArxSpec>,
+    /// Fit by [`crate::pipeline::fit_map`] with its output-error refinement even without
+    /// own-output signals: the null structure of an `output-nonlinearity` candidate, made the
+    /// way the candidate is, so the refinement's own gain is not credited to the feedback.
+    pub refined: bool,
 }
 
 /// The noise model of a [`Spec`].
@@ -194,6 +198,7 @@ impl Spec {
                             })
                             .map(|v| (v, vec![])),
                     }),
+                    refined: false,
                 };
                 Ok(spec)
             }
@@ -269,6 +274,7 @@ impl Spec {
                         _ => Noise::Pbsid,
                     },
                     arx: None,
+                    refined: false,
                 })
             }
         }
@@ -294,8 +300,8 @@ pub fn fit_spec(spec: &Spec, train: &Dataset, base_fit: &Value) -> Result<Fitted
     if let Some(a) = &spec.arx {
         return fit_arx(spec, a, train, base_fit);
     }
-    // a structure that reads the model's own output (diagnose/output.rs)
-    if spec.signals.has_feedback() {
+    // a structure that reads the model's own output, or its null (diagnose/output.rs)
+    if spec.signals.has_feedback() || spec.refined {
         return super::output::fit(spec, train, base_fit);
     }
     let sig = spec.signals.evaluate(train)?;
@@ -618,7 +624,8 @@ pub fn realize_scheduled(
 }
 
 /// Add the constant input channels `const_idx` (of the full input list of `sig`) to a model
-/// identified on the varying inputs `var_idx`: B_c^(i) and D_c by output-error least squares.
+/// identified on the varying inputs `var_idx`: B_c^(i) and D_c by output-error least squares,
+/// jointly with the initial state of the training record (not kept).
 fn add_constant_channels(
     ss: &LpvSs,
     sig: &Signals,
@@ -669,6 +676,21 @@ fn add_constant_channels(
             }
         }
     }
+    // the initial state, a nuisance parameter of the same least squares: the training record
+    // starts wherever the plant was (the cascaded tanks at 5 V), and from x0 = 0 the constant
+    // channels would absorb the start transient into a wrong offset. The free run is affine
+    // in x0: one free response per state
+    let n_par = responses.len();
+    let zero_u = Signals {
+        u: DMatrix::zeros(big_n, var_idx.len()),
+        y: sig.y.clone(),
+        p: sig.p.clone(),
+    };
+    for a in 0..n {
+        let mut x0 = DVector::zeros(n);
+        x0[a] = 1.0;
+        responses.push(ss.run_from(&zero_u, &x0, false));
+    }
     let np = responses.len();
     let (theta, _) = super::stats::lstsq(big_n * l, np, 1, |row_i, buf| {
         let (k, j) = (row_i / l, row_i % l);
@@ -677,7 +699,7 @@ fn add_constant_channels(
         }
         buf[np] = sig.y[(k, j)] - y0[(k, j)];
     })?;
-    if theta.iter().any(|v| !v.is_finite()) {
+    if theta.iter().take(n_par).any(|v| !v.is_finite()) {
         return Err(RefitError::Numerical(
             "constant-channel least squares failed (non-finite coefficients)".into(),
         ));

@@ -110,10 +110,18 @@ pub fn summary(r: &Report, plots: &[PathBuf]) -> String {
     );
     let _ = writeln!(
         s,
-        "Before: free-run VAF {} % (BFR {} %), one-step VAF {} %.",
+        "Before: free-run VAF {} % (BFR {} %), one-step VAF {} %{}.",
         pct(&r.before.vaf),
         pct(&r.before.bfr),
-        pct(&r.before_one_step.vaf)
+        pct(&r.before_one_step.vaf),
+        if r.before.skipped > 0 {
+            format!(
+                " (every model's initial state estimated on the first {} validation samples, which are not scored)",
+                r.before.skipped
+            )
+        } else {
+            String::new()
+        }
     );
     let _ = writeln!(s, "Free-run residual on the validation data:");
     residual_lines(&r.residual.free_run, &mut s);

@@ -507,25 +507,35 @@ pub fn batch_means_t(d: &[f64], batches: usize) -> (f64, f64) {
 /// than the correlation time are nearly independent); the log ratio makes it scale-free, so
 /// stretches of large error (e.g. at extreme scheduling) do not dominate. Returns (t, B - 1).
 pub fn batch_log_ratio_t(loss0: &[f64], loss1: &[f64], batches: usize) -> (f64, f64) {
+    let r = batch_log_ratios(loss0, loss1, batches);
+    if r.is_empty() {
+        return (0.0, 1.0);
+    }
+    mean_t(&r)
+}
+
+/// The per-batch log ratios r_b of [`batch_log_ratio_t`] (empty when a batch would be
+/// empty): ratios of several independent comparisons can be pooled in one t test
+/// ([`mean_t`]).
+pub fn batch_log_ratios(loss0: &[f64], loss1: &[f64], batches: usize) -> Vec<f64> {
     let n = loss0.len().min(loss1.len());
     let b = batches.min(n / 2).max(2);
     let len = n / b;
     if len == 0 {
-        return (0.0, 1.0);
+        return vec![];
     }
-    let r: Vec<f64> = (0..b)
+    (0..b)
         .map(|i| {
             let a: f64 = loss0[i * len..(i + 1) * len].iter().sum();
             let c: f64 = loss1[i * len..(i + 1) * len].iter().sum();
             (a.max(1e-300) / c.max(1e-300)).ln()
         })
-        .collect();
-    mean_t(&r)
+        .collect()
 }
 
 /// One-sample t statistic of the mean of `v` (B = len(v) >= 2 values): mean / (sd / sqrt(B)),
 /// +-inf for a zero spread with a nonzero mean. Returns (t, B - 1).
-fn mean_t(v: &[f64]) -> (f64, f64) {
+pub fn mean_t(v: &[f64]) -> (f64, f64) {
     let b = v.len();
     let m = mean(v);
     let s2 = v.iter().map(|v| (v - m) * (v - m)).sum::<f64>() / (b - 1) as f64;

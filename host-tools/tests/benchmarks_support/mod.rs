@@ -59,6 +59,8 @@ pub struct Result {
     pub outcome: Outcome,
     /// (test name, RMSE before x0 = 0, before x0 estimated, after x0 = 0, after estimated)
     pub rmse: Vec<(String, f64, f64, f64, f64)>,
+    /// (test name, free-run VAF per output after, x0 = 0 and x0 estimated)
+    pub vaf_after: Vec<(String, Vec<f64>, Vec<f64>)>,
     pub seconds: f64,
 }
 
@@ -100,9 +102,16 @@ pub fn run_bench(dir: &Path, b: &Bench) -> Result {
     )
     .unwrap();
     let mut rmse_rows = Vec::new();
+    let mut vaf_rows = Vec::new();
     for &(file, lo, hi) in &b.tests {
         let t = segment(&Dataset::read_csv(&dir.join(file)).unwrap(), lo, hi, "");
         let est = X0::Estimate { samples: 50 };
+        let vaf = |x0| {
+            lpvid_host::simulate::score_from(&outcome.model, &t, Mode::FreeRun, x0)
+                .unwrap()
+                .vaf
+        };
+        vaf_rows.push((t.source.clone(), vaf(X0::Zero), vaf(est)));
         rmse_rows.push((
             t.source.clone(),
             rmse(&model, &t, X0::Zero),
@@ -115,6 +124,7 @@ pub fn run_bench(dir: &Path, b: &Bench) -> Result {
         model,
         outcome,
         rmse: rmse_rows,
+        vaf_after: vaf_rows,
         seconds: t0.elapsed().as_secs_f64(),
     }
 }
@@ -139,6 +149,39 @@ pub fn describe(b: &Bench, r: &Result) -> String {
         ));
     }
     s.push_str(&format!("  stopped: {}\n", r.outcome.report.stopped));
+    for (t, v0, ve) in &r.vaf_after {
+        s.push_str(&format!(
+            "  {t}: free-run VAF after {v0:.2?} % (x0 estimated {ve:.2?} %)\n"
+        ));
+    }
+    if std::env::var("BENCH_VERBOSE").is_ok() {
+        // every variant of every step, and the findings with their replication
+        for st in &r.outcome.report.steps {
+            s.push_str(&format!(
+                "  step {}: null refit VAF {:.2}, MSE {:.4e} / {:.4e}\n",
+                st.step, st.null_refit_vaf, st.null_refit_mse.0, st.null_refit_mse.1
+            ));
+            for v in &st.variants_scored {
+                s.push_str(&format!(
+                    "    {:<24} {:>9.4} p={:.1e} {:.1}s {}{}\n",
+                    v.effect,
+                    v.explained,
+                    v.p_value,
+                    v.seconds,
+                    v.detail,
+                    v.error
+                        .as_deref()
+                        .map_or(String::new(), |e| format!(" ERROR {e}"))
+                ));
+            }
+            for f in &st.findings {
+                s.push_str(&format!(
+                    "    finding {:<24} {:.4} p={:.1e} sig {} repl {:?} blocked {:?}\n",
+                    f.effect, f.explained, f.p_value, f.significant, f.replication, f.blocked_by
+                ));
+            }
+        }
+    }
     for (t, b0, be, a0, ae) in &r.rmse {
         s.push_str(&format!(
             "  {t}: RMSE before {b0:.4e} (x0 estimated {be:.4e}), after {a0:.4e} (x0 estimated {ae:.4e})\n"

@@ -46,7 +46,18 @@ fn mse(model: &ModelFile, ds: &lpvid_host::data::Dataset, mode: Mode) -> f64 {
 
 /// Draw, identify and diagnose the plant of `effect` with `seed` (records of `n` samples).
 pub fn run_one(effect: &str, seed: u64, n: usize) -> FamilyRun {
-    let case = family_case(effect, seed, n).unwrap();
+    run_one_with(effect, seed, n, None)
+}
+
+/// [`run_one`] with the validation (held-out) record cut to its first `val_len` samples (a
+/// short held-out record, as the cascaded tanks' 205 samples).
+pub fn run_one_with(effect: &str, seed: u64, n: usize, val_len: Option<usize>) -> FamilyRun {
+    let mut case = family_case(effect, seed, n).unwrap();
+    if let Some(v) = val_len {
+        for c in case.val.cols.iter_mut() {
+            c.truncate(v);
+        }
+    }
     let dir = tempfile::tempdir().unwrap();
     let tp = dir.path().join("train.csv");
     let mp = dir.path().join("model.json");
@@ -104,6 +115,17 @@ pub fn run_one(effect: &str, seed: u64, n: usize) -> FamilyRun {
 
 /// Run every (effect, seed) on `threads` threads.
 pub fn run_family(effects: &[&str], seeds: &[u64], n: usize, threads: usize) -> Vec<FamilyRun> {
+    run_family_with(effects, seeds, n, threads, None)
+}
+
+/// [`run_family`] with held-out records of `val_len` samples ([`run_one_with`]).
+pub fn run_family_with(
+    effects: &[&str],
+    seeds: &[u64],
+    n: usize,
+    threads: usize,
+    val_len: Option<usize>,
+) -> Vec<FamilyRun> {
     let jobs: Vec<(String, u64)> = effects
         .iter()
         .flat_map(|e| seeds.iter().map(move |s| (e.to_string(), *s)))
@@ -115,7 +137,7 @@ pub fn run_family(effects: &[&str], seeds: &[u64], n: usize, threads: usize) -> 
             s.spawn(|| loop {
                 let i = next.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
                 let Some((e, seed)) = jobs.get(i) else { break };
-                let r = run_one(e, *seed, n);
+                let r = run_one_with(e, *seed, n, val_len);
                 out.lock().unwrap().push(r);
             });
         }
