@@ -168,7 +168,18 @@ impl LazyGram {
         self.n
     }
 
-    fn row(&self, j: usize) -> &[f64] {
+    /// Number of regressors q (+ r with feedthrough): the rows of Phi.
+    pub fn regressors(&self) -> usize {
+        self.q
+    }
+
+    /// G_jj = ||Phi_j||^2 for every regressor j.
+    pub fn diagonal(&self) -> &[f64] {
+        &self.diag
+    }
+
+    /// Regressor j over the windows (row j of Phi).
+    pub(crate) fn row(&self, j: usize) -> &[f64] {
         &self.rows[j * self.n..(j + 1) * self.n]
     }
 
@@ -496,6 +507,61 @@ pub fn select_by_simulation(
     orders: &[usize],
     feedthrough: bool,
 ) -> Result<SimSelection, BpdnError> {
+    select_by_simulation_with(dims, f, g, y, slab, val, orders, feedthrough, Engine::Auto)
+}
+
+/// Which engine runs the group-lasso path of [`select_by_simulation_with`].
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Engine {
+    /// The core's covariance-update engine (`lpvid::lasso::CoordinateDescent`) on the
+    /// lazily evaluated Gram: a move costs q, a new active column q N.
+    Covariance,
+    /// The residual (sample-space) engine of [`super::sample_cd`]: a move costs N, a KKT
+    /// pass q N.
+    SampleSpace,
+    /// The sample-space engine when the regressors outnumber the windows, else the
+    /// covariance engine.
+    Auto,
+}
+
+impl Engine {
+    /// The engine `Auto` resolves to for q regressors and N windows.
+    pub fn resolve(self, regressors: usize, windows: usize) -> Engine {
+        match self {
+            Engine::Auto if regressors > windows => Engine::SampleSpace,
+            Engine::Auto => Engine::Covariance,
+            e => e,
+        }
+    }
+}
+
+/// The path point of [`select_by_simulation_with`] scored best so far.
+struct Best {
+    score: f64,
+    error: f64,
+    order: usize,
+    index: usize,
+    lambda: f64,
+    active: usize,
+    theta: Vec<f64>,
+    sv: Vec<f64>,
+    states: DMatrix<f64>,
+}
+
+/// [`select_by_simulation`] with the path engine given (both solve the same problems to
+/// the same tolerance; `benches/bpdn.rs` times them side by side).
+#[allow(clippy::too_many_arguments)]
+pub fn select_by_simulation_with(
+    dims: &PbsidDims,
+    f: usize,
+    g: &LazyGram,
+    y: &[f64],
+    slab: &Slab<'_, f64>,
+    val: Option<&Slab<'_, f64>>,
+    orders: &[usize],
+    feedthrough: bool,
+    engine: Engine,
+) -> Result<SimSelection, BpdnError> {
     let (r, l, m, p) = (dims.r, dims.l, dims.m(), dims.p);
     let q = g.q;
     let windows = g.n;
@@ -523,7 +589,6 @@ pub fn select_by_simulation(
     let mut z_last = vec![0.0; dims.q()?];
     write_pbsid_regressor(dims, slab, windows, &mut z_last);
     let cross = g.cross(y, l);
-    let prob = Problem::new(g, &cross, l, Penalty::Group)?;
     // Each point only has to rank well: a 1e-5 relative max-change (at most 100 sweeps)
     // gives the same choices on B2 as 1e-7 (mean VAF within 0.05 at p = 8, 12, 14) at less
     // than half the time.
@@ -533,96 +598,94 @@ pub fn select_by_simulation(
         n_lambda: 50,
         lambda_min_ratio: 1e-4,
     };
-    let mut engine = CoordinateDescent::new(l, q, vec![0.0; lpvid::lasso::work_len(l, q)])?;
     let mut theta = vec![0.0; l * q];
-    // (score, simulation error, order, path index, lambda, active, theta, sv, states)
-    type Best = (
-        f64,
-        f64,
-        usize,
-        usize,
-        f64,
-        usize,
-        Vec<f64>,
-        Vec<f64>,
-        DMatrix<f64>,
-    );
     let mut best: Option<Best> = None;
     let mut lmax = 0.0;
     let mut since = 0usize;
     let mut err_msg = None;
-    let points = engine
-        .path(&prob, &settings, &mut theta, |fit, th| {
-            if fit.index == 0 {
-                lmax = fit.lambda;
+    let mut visit = |fit: &lpvid::lasso::Fit<f64>, th: &[f64]| {
+        if fit.index == 0 {
+            lmax = fit.lambda;
+        }
+        let gkz = gamma_kz(dims, f, th, g, &z_last);
+        let (sv, x) = match states_from_gkz(&gkz, windows) {
+            Ok(v) => v,
+            Err(e) => {
+                err_msg = Some(BpdnError::from(e));
+                return ControlFlow::Break(());
             }
-            let gkz = gamma_kz(dims, f, th, g, &z_last);
-            let (sv, x) = match states_from_gkz(&gkz, windows) {
-                Ok(v) => v,
-                Err(e) => {
-                    err_msg = Some(BpdnError::from(e));
-                    return ControlFlow::Break(());
-                }
+        };
+        let mut improved = false;
+        for &n in &orders {
+            let states = x.rows(0, n).into_owned();
+            let Ok(model) = realize_from_states(dims, slab, &states, feedthrough) else {
+                continue;
             };
-            let mut improved = false;
-            for &n in &orders {
-                let states = x.rows(0, n).into_owned();
-                let Ok(model) = realize_from_states(dims, slab, &states, feedthrough) else {
-                    continue;
-                };
-                let v = simulation_error(&model, &scored);
-                let score = if val.is_some() {
-                    v
-                } else {
-                    nl * (v.max(1e-300) / nl).ln() + 2.0 * parameter_count(n, r, l, m) as f64
-                };
-                if score < best.as_ref().map(|b| b.0).unwrap_or(f64::INFINITY) {
-                    best = Some((
-                        score,
-                        v,
-                        n,
-                        fit.index,
-                        fit.lambda,
-                        fit.active,
-                        th.to_vec(),
-                        sv.clone(),
-                        x.clone(),
-                    ));
-                    improved = true;
-                }
+            let v = simulation_error(&model, &scored);
+            let score = if val.is_some() {
+                v
+            } else {
+                nl * (v.max(1e-300) / nl).ln() + 2.0 * parameter_count(n, r, l, m) as f64
+            };
+            if score < best.as_ref().map(|b| b.score).unwrap_or(f64::INFINITY) {
+                best = Some(Best {
+                    score,
+                    error: v,
+                    order: n,
+                    index: fit.index,
+                    lambda: fit.lambda,
+                    active: fit.active,
+                    theta: th.to_vec(),
+                    sv: sv.clone(),
+                    states: x.clone(),
+                });
+                improved = true;
             }
-            if best.is_some() && (fit.lambda / lmax.max(1e-300)) < 1.0 {
-                since = if improved { 0 } else { since + 1 };
-                if since >= PATIENCE {
-                    return ControlFlow::Break(());
-                }
+        }
+        if best.is_some() && (fit.lambda / lmax.max(1e-300)) < 1.0 {
+            since = if improved { 0 } else { since + 1 };
+            if since >= PATIENCE {
+                return ControlFlow::Break(());
             }
-            ControlFlow::Continue(())
-        })
-        .map_err(BpdnError::Path)?;
+        }
+        ControlFlow::Continue(())
+    };
+    let points = match engine.resolve(q, windows) {
+        Engine::SampleSpace => {
+            super::sample_cd::path(g, y, &cross, l, &settings, &mut theta, &mut visit)?
+        }
+        _ => {
+            let prob = Problem::new(g, &cross, l, Penalty::Group)?;
+            let mut cd = CoordinateDescent::new(l, q, vec![0.0; lpvid::lasso::work_len(l, q)])?;
+            cd.path(&prob, &settings, &mut theta, &mut visit)
+                .map_err(BpdnError::Path)?
+        }
+    };
     if let Some(m) = err_msg {
         return Err(m);
     }
-    let (_, v, order, index, lambda_abs, active, theta, sv, states) =
-        best.ok_or(BpdnError::NothingRealized)?;
-    let lambda = if lmax > 0.0 { lambda_abs / lmax } else { 0.0 };
+    let b = best.ok_or(BpdnError::NothingRealized)?;
+    let lambda = if lmax > 0.0 { b.lambda / lmax } else { 0.0 };
     let target = if val.is_some() {
         "validation data"
     } else {
         "training record, AIC order penalty"
     };
     let reason = format!(
-        "BPDN-SV: point {index} of {points} (lambda = {lambda:.3e} lambda_max, {active} active columns) with order {order} has the smallest free-run simulation error on the {target} (RMS {:.4e}, orders {:?} tried)",
-        (v / nl).sqrt(),
+        "BPDN-SV: point {} of {points} (lambda = {lambda:.3e} lambda_max, {} active columns) with order {} has the smallest free-run simulation error on the {target} (RMS {:.4e}, orders {:?} tried)",
+        b.index,
+        b.active,
+        b.order,
+        (b.error / nl).sqrt(),
         orders
     );
     Ok(SimSelection {
-        theta,
-        order,
-        singular_values: sv,
-        states,
+        theta: b.theta,
+        order: b.order,
+        singular_values: b.sv,
+        states: b.states,
         lambda,
-        active,
+        active: b.active,
         points,
         reason,
     })

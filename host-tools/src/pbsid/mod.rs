@@ -34,6 +34,7 @@ pub mod order;
 pub mod primal;
 pub mod realize;
 pub mod ridge;
+pub mod sample_cd;
 pub mod scaling;
 pub mod settings;
 pub mod sparse;
