@@ -475,6 +475,10 @@ pub struct SimSelection {
     pub singular_values: Vec<f64>,
     /// State candidates U^T Gamma K Z (all f l rows) for windows 0..=N-p (eq. (16)).
     pub states: DMatrix<f64>,
+    /// The score of the chosen point and order (squared simulation error on the
+    /// validation data, or the AIC value on the training record): comparable between past
+    /// windows on the same record, which `sparse::sv_over_depths` relies on.
+    pub score: f64,
     /// Lambda relative to lambda_max.
     pub lambda: f64,
     /// Non-zero columns of theta.
@@ -684,6 +688,7 @@ pub fn select_by_simulation_with(
         order: b.order,
         singular_values: b.sv,
         states: b.states,
+        score: b.score,
         lambda,
         active: b.active,
         points,

@@ -177,12 +177,16 @@ pub fn fit_with_validation(
     };
     let mut solver_reason = solver_reason;
     let mut sparse_order = None;
+    // state time of the first column of x (p, or earlier for a sparse estimate of
+    // shallower depth, see bpdn::depth)
+    let mut start = p;
     let (sv, x, reg) = match solver {
         _ if sparse => {
-            let (sv, x, reg, why, order) =
+            let (sv, x, reg, why, order, first) =
                 sparse::bpdn_states(&dims, f, &slab, windows, val_rows.as_deref(), opts)?;
             solver_reason = format!("sparse form with explicit regressors ({why})");
             sparse_order = order;
+            start = first;
             (sv, x, reg)
         }
         Solver::Dual => dual::dual_states(&dims, f, &slab, windows, opts)?,
@@ -193,7 +197,16 @@ pub fn fit_with_validation(
         None => choose_order(&sv, windows, opts)?,
     };
     let states = x.rows(0, order).into_owned();
-    let scaled = realize_from_states(&dims, &slab, &states, opts.feedthrough)?;
+    let scaled = realize_from_states(
+        &PbsidDims::new(r, l, s, start)?,
+        &slab,
+        &states,
+        opts.feedthrough,
+    )?;
+    // the fit reports the states of times p..=N (what the observer step aligns with)
+    let states = states
+        .columns(p - start, states.ncols() - (p - start))
+        .into_owned();
     let mut model = unscale(&scaled, &scaling);
     let mut refinement = None;
     if opts.refine {
