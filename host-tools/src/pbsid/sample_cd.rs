@@ -98,7 +98,9 @@ where
         e_ref: y.to_vec(),
         g_ref: gnorm.clone(),
         norm: diag.iter().map(|d| d.max(0.0).sqrt()).collect(),
+        open: Vec::new(),
     };
+    let yy: f64 = y.iter().map(|v| v * v).sum();
     let mut prev = lmax;
     for k in 0..points {
         let lambda = if k == 0 {
@@ -110,9 +112,11 @@ where
             engine.solve(lambda, prev, theta, &mut gnorm, &sc, settings.max_iter)?;
         let (kkt, active) = engine.certificate(lambda, theta, &gnorm, &sc);
         let rss: f64 = engine.e.iter().map(|v| v * v).sum();
-        let yy: f64 = y.iter().map(|v| v * v).sum();
-        let pen: f64 = (0..q)
-            .map(|j| (0..l).map(|o| theta[o * q + j].powi(2)).sum::<f64>().sqrt())
+        // the non-zero columns are all in the swept set
+        let pen: f64 = engine
+            .set
+            .iter()
+            .map(|&j| (0..l).map(|o| theta[o * q + j].powi(2)).sum::<f64>().sqrt())
             .sum();
         let fit = Fit {
             index: k,
@@ -184,6 +188,8 @@ struct Engine<'a> {
     g_ref: Vec<f64>,
     /// ||Phi_j|| for every column.
     norm: Vec<f64>,
+    /// Scratch: the columns a KKT pass has to evaluate.
+    open: Vec<usize>,
 }
 
 impl Engine<'_> {
@@ -297,28 +303,30 @@ impl Engine<'_> {
                 .map(|(a, b)| (a - b) * (a - b))
                 .sum::<f64>()
                 .sqrt();
-            let open = (0..q)
-                .filter(|&j| {
-                    !self.fixed[j]
-                        && !self.in_set[j]
-                        && self.g_ref[j] + self.norm[j] * drift > lambda
-                })
-                .count();
-            let full = 4 * open > q;
+            // one scan for the columns the bound does not certify (ascending)
+            self.open.clear();
+            for j in 0..q {
+                if !self.fixed[j]
+                    && !self.in_set[j]
+                    && self.g_ref[j] + self.norm[j] * drift > lambda
+                {
+                    self.open.push(j);
+                }
+            }
+            let full = 4 * self.open.len() > q;
             if full {
                 self.e_ref.copy_from_slice(self.e);
             }
             let mut added = 0;
-            for (j, gn) in gnorm.iter_mut().enumerate() {
+            let count = if full { q } else { self.open.len() };
+            for i in 0..count {
+                let j = if full { i } else { self.open[i] };
                 if self.fixed[j] {
-                    continue;
-                }
-                if !full && (self.in_set[j] || self.g_ref[j] + self.norm[j] * drift <= lambda) {
                     continue;
                 }
                 self.gradient(j);
                 let norm = self.grad.iter().map(|v| v * v).sum::<f64>().sqrt();
-                *gn = norm;
+                gnorm[j] = norm;
                 if full {
                     self.g_ref[j] = norm;
                 }

@@ -24,11 +24,24 @@ use crate::linalg::sym_eig;
 /// expects of a stable predictor), fitted on the N - d windows that exist for it instead of
 /// the N - p of the full regressor. Depths are fitted on up to two threads (deepest, the
 /// costliest, first); ties go to the shallower depth. Returns the selection and its depth.
-pub(crate) fn sv_over_depths(
+pub fn sv_over_depths(
     dims: &PbsidDims,
     slab: &Slab<'_, f64>,
     val: Option<&Slab<'_, f64>>,
     opts: &PbsidOptions,
+) -> Result<(bpdn::SimSelection, usize), FitError> {
+    let workers = std::thread::available_parallelism().map_or(1, |v| v.get());
+    sv_over_depths_with(dims, slab, val, opts, workers.min(2))
+}
+
+/// [`sv_over_depths`] on `workers` threads (1: in the calling thread); the result does not
+/// depend on it (`benches/bpdn.rs` times 1 against 2).
+pub fn sv_over_depths_with(
+    dims: &PbsidDims,
+    slab: &Slab<'_, f64>,
+    val: Option<&Slab<'_, f64>>,
+    opts: &PbsidOptions,
+    workers: usize,
 ) -> Result<(bpdn::SimSelection, usize), FitError> {
     let p = dims.p;
     let one = |d: usize| -> Result<Option<bpdn::SimSelection>, FitError> {
@@ -48,10 +61,7 @@ pub(crate) fn sv_over_depths(
         Ok(Some(sel))
     };
     let next = std::sync::atomic::AtomicUsize::new(0);
-    let workers = std::thread::available_parallelism()
-        .map_or(1, |v| v.get())
-        .min(2)
-        .min(p);
+    let workers = workers.clamp(1, p.max(1));
     let work = || {
         let mut out = Vec::new();
         loop {
