@@ -8,11 +8,15 @@
 //! b2: Example I (N = 75, 25 dB), b3: Example II (N = 250); defaults b2 sv 20 3..14.
 //! `sv-paper` is BPDN-SV with the paper's one-step score (`--bpdn-score paper`); `ORDER=n`
 //! fixes the order (default: automatic).
-//! `REFINE=1` adds the output-error refinement (`--refine`). The acceptance test
+//! `REFINE=1` adds the output-error refinement (`--refine`). `SEED0=k` starts the seeds at k
+//! (seeds k..k+RUNS), so a figure can be checked on seeds that were not looked at. `FUTURE=f`
+//! sets the future window (min(f, p)); `SKIP=k` drops the first k training samples (to
+//! compare past windows on the same number of regression windows). The acceptance test
 //! `tests/acceptance_bpdn.rs` runs the smaller version of this (B2 20 runs, B3 10 runs).
 
 use std::time::Instant;
 
+use lpvid_host::lpvss::Signals;
 use lpvid_host::metrics::{mean, vaf_per_output};
 use lpvid_host::pbsid::{fit, BpdnScore, Order, PbsidOptions, Reg};
 use lpvid_host::systems;
@@ -42,26 +46,46 @@ fn main() {
         .map(|s| s.split(',').filter_map(|v| v.parse().ok()).collect())
         .unwrap_or_else(|| (3..=14).collect());
     let refine = std::env::var("REFINE").is_ok();
+    let future: Option<usize> = std::env::var("FUTURE").ok().and_then(|v| v.parse().ok());
+    let skip: usize = std::env::var("SKIP")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(0);
+    let seed0: u64 = std::env::var("SEED0")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(0);
     println!(
-        "{sys}, {reg:?} ({score:?} score), order {order:?}, {runs} runs{}",
+        "{sys}, {reg:?} ({score:?} score), order {order:?}, {runs} runs (seeds {seed0}..{}){}",
+        seed0 + runs,
         if refine { ", refined" } else { "" }
     );
-    println!("   p   mean VAF   min VAF   fit ms   orders");
+    println!("   p   mean VAF   min VAF   std VAF   fit ms   orders");
     for p in ps {
         let mut vafs = Vec::new();
         let mut orders = Vec::new();
         let t = Instant::now();
-        for seed in 0..runs {
-            let e = if sys == "b3" {
+        for seed in seed0..seed0 + runs {
+            let mut e = if sys == "b3" {
                 systems::b3(250, seed)
             } else {
                 systems::b2(75, 25.0, seed)
             };
+            if skip > 0 {
+                let t = &e.train;
+                let n = t.len() - skip;
+                e.train = Signals {
+                    u: t.u.rows(skip, n).into_owned(),
+                    y: t.y.rows(skip, n).into_owned(),
+                    p: t.p.rows(skip, n).into_owned(),
+                };
+            }
             let mut o = PbsidOptions::new(p);
             o.reg = reg;
             o.refine = refine;
             o.bpdn_score = score;
             o.order = order;
+            o.future = future.map(|f| f.min(p));
             match fit(&e.train, &o) {
                 Ok(f) => {
                     orders.push(f.order);
@@ -76,9 +100,10 @@ fn main() {
         }
         let ms = t.elapsed().as_secs_f64() * 1e3 / runs as f64;
         let min = vafs.iter().copied().fold(f64::INFINITY, f64::min);
-        println!(
-            "  {p:2}   {:8.2}   {min:7.2}   {ms:6.1}   {orders:?}",
-            mean(&vafs)
-        );
+        let avg = mean(&vafs);
+        let std = (vafs.iter().map(|v| (v - avg) * (v - avg)).sum::<f64>()
+            / (vafs.len().max(2) - 1) as f64)
+            .sqrt();
+        println!("  {p:2}   {avg:8.2}   {min:7.2}   {std:7.2}   {ms:6.1}   {orders:?}");
     }
 }

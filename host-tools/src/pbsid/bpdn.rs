@@ -25,7 +25,24 @@
 //!   4.3) for every candidate order n, simulated from x0 = 0. With a validation file the
 //!   score is its simulation error; without one the whole training record is simulated and
 //!   the order is chosen with the AIC penalty N l log(V / (N l)) + 2 k(n), k(n) the number
-//!   of parameters of A, B, C, D of order n. Point and order come out together.
+//!   of parameters of A, B, C, D of order n. Point and order come out together. The fit
+//!   runs this at every past window d = 1..=p and keeps the best score
+//!   (`pbsid::sparse::sv_over_depths`): depth, point and order come out together.
+//!
+//! **Why the search over past windows.** At p = 12-14 the single path lost 1-1.5 VAF
+//! against p = 5 on B2. Two causes, both measured: (a) the regression has N - p windows (61
+//! instead of 70 at N = 75), and at equal windows (the first p - 5 samples dropped at p = 5)
+//! p = 5 / 8 / 12 / 14 differ by at most 0.3-0.6 VAF (95.84 / 95.57 / 95.53 / 95.22, seeds
+//! 0..20; 95.65 / 95.75 / 95.73 / 95.71, seeds 1000..1040); (b) the l2,1 penalty of (33)
+//! leaves columns of every lag active at the chosen point, with lags 9-14 carrying as much
+//! of the prediction as lags 4-6 although the predictor decays like 0.69^lag (section 4.2
+//! expects that part to be zero). Depth d is (33) with the columns beyond lag d zero (z^d
+//! holds exactly the lag <= d columns of z^p for the same target), fitted on the N - d
+//! windows that exist for it, so the search removes both. What did not help (measured and
+//! dropped): an adaptive second group-lasso stage on the chosen support (weights
+//! 1/||theta_j||: same VAF at p >= 8), adding the path's degrees of freedom (active columns)
+//! to the AIC (88.9 at p = 14, the score needs the dense points), realizing from the
+//! earlier states a shallower estimate allows (the chosen points reach lag p).
 //!
 //! **Why ours is the default.** On Example I (B2, N = 75, 25 dB) the last quarter holds 19
 //! samples, so 19 - p validation windows (14 at p = 5, 5 at p = 14); their one-step error
@@ -41,7 +58,8 @@
 //! | the same with n = 2 given (as the paper's Fig. 2) | 91.8 | 92.3 | 90.8 | 89.3 | 87.4 | - |
 //! | the same, earlier implementation (refit on all windows at the chosen lambda) | 89.0 | 92.1 | 92.2 | 87.1 | 89.5 | 79.5 |
 //! | free-run error of the realized model on the last quarter | 93.6 | 94.8 | 91.1 | 91.9 | 93.0 | - |
-//! | free-run error on the training record, AIC order (ours, `Simulation`) | 96.3 | 96.7 | 95.9 | 95.6 | 95.3 | 95.1 |
+//! | free-run error on the training record, AIC order, depth p only (ours before issue 16) | 96.3 | 96.7 | 95.9 | 95.6 | 95.3 | 95.1 |
+//! | the same over depths 1..=p (ours, `Simulation`, the default) | 96.31 | 96.80 | 96.85 | 96.74 | 96.75 | 96.77 |
 //! | best point of the path (an oracle) | 96.7 | 96.8 | 96.5 | 96.1 | 95.9 | - |
 //! | MATLAB PBSID toolbox BPDN-SV (BENCHMARKS.md B2) | - | 95.0 | 92.6 | 91.3 | 92.1 | - |
 //!
@@ -132,13 +150,24 @@ impl LazyGram {
                 windows: n,
             })?;
         let mut rows = vec![0.0; size];
-        let mut z = vec![0.0; q];
         let mut y = vec![0.0; dims.l * n];
-        for (c, &k) in windows.iter().enumerate() {
-            write_pbsid_regressor(dims, slab, k, &mut z);
-            for (j, v) in z.iter().enumerate() {
-                rows[j * n + c] = *v;
+        // regressors of BLOCK windows at a time, written row-wise as runs of BLOCK values
+        // (one strided store per value was a tenth of a p = 14 BPDN-SV fit)
+        const BLOCK: usize = 16;
+        let mut zs = vec![0.0; BLOCK * q];
+        for c0 in (0..n).step_by(BLOCK) {
+            let nb = BLOCK.min(n - c0);
+            for b in 0..nb {
+                write_pbsid_regressor(dims, slab, windows[c0 + b], &mut zs[b * q..(b + 1) * q]);
             }
+            for j in 0..q {
+                let dst = &mut rows[j * n + c0..j * n + c0 + nb];
+                for (b, v) in dst.iter_mut().enumerate() {
+                    *v = zs[b * q + j];
+                }
+            }
+        }
+        for (c, &k) in windows.iter().enumerate() {
             if feedthrough {
                 for (j, v) in slab.u(k + dims.p).iter().enumerate() {
                     rows[(q + j) * n + c] = *v;
@@ -168,7 +197,18 @@ impl LazyGram {
         self.n
     }
 
-    fn row(&self, j: usize) -> &[f64] {
+    /// Number of regressors q (+ r with feedthrough): the rows of Phi.
+    pub fn regressors(&self) -> usize {
+        self.q
+    }
+
+    /// G_jj = ||Phi_j||^2 for every regressor j.
+    pub fn diagonal(&self) -> &[f64] {
+        &self.diag
+    }
+
+    /// Regressor j over the windows (row j of Phi).
+    pub(crate) fn row(&self, j: usize) -> &[f64] {
         &self.rows[j * self.n..(j + 1) * self.n]
     }
 
@@ -433,16 +473,78 @@ pub fn slab_signals(slab: &Slab<'_, f64>, r: usize, l: usize) -> Signals {
 }
 
 /// Sum of squared free-run simulation errors of `model` on `sig` (from x0 = 0); +inf when
-/// the simulation diverges.
+/// the simulation diverges. The free run of [`LpvSs::simulate`] (same operations in the
+/// same order) without its per-sample allocations: BPDN-SV scores every path point and
+/// order with it.
 pub fn simulation_error(model: &LpvSs, sig: &Signals) -> f64 {
-    let yh = model.simulate(sig, None);
-    let e: f64 = yh
-        .iter()
-        .zip(sig.y.iter())
-        .map(|(a, b)| (a - b) * (a - b))
-        .sum();
-    if e.is_finite() {
-        e
+    let (n, l, m) = (model.n(), model.l(), model.m());
+    let r = model.b[0].ncols();
+    let s = sig.p.ncols();
+    let mut x = vec![0.0; n];
+    let mut xn = vec![0.0; n];
+    let mut t = vec![0.0; n];
+    let mut mu = vec![0.0; s + 1];
+    let mut c = DMatrix::zeros(l, n);
+    let mut d = DMatrix::zeros(l, r);
+    let mut err = 0.0;
+    for k in 0..sig.len() {
+        mu[0] = 1.0;
+        for i in 0..s {
+            mu[i + 1] = sig.p[(k, i)];
+        }
+        for (dst, mats) in [(&mut c, &model.c), (&mut d, &model.d)] {
+            if mats.len() == 1 {
+                dst.copy_from(&mats[0]);
+            } else {
+                dst.fill(0.0);
+                for (mat, w) in mats.iter().zip(&mu) {
+                    *dst += mat * *w;
+                }
+            }
+        }
+        for o in 0..l {
+            let mut cx = 0.0;
+            for (j, xj) in x.iter().enumerate() {
+                cx += c[(o, j)] * xj;
+            }
+            let mut du = 0.0;
+            for j in 0..r {
+                du += d[(o, j)] * sig.u[(k, j)];
+            }
+            let e = (cx + du) - sig.y[(k, o)];
+            err += e * e;
+        }
+        xn.fill(0.0);
+        for (i, &w) in mu.iter().enumerate().take(m) {
+            if w == 0.0 {
+                continue;
+            }
+            let (a, b) = (&model.a[i], &model.b[i]);
+            for (row, tv) in t.iter_mut().enumerate() {
+                let mut ax = 0.0;
+                for (j, xj) in x.iter().enumerate() {
+                    ax += a[(row, j)] * xj;
+                }
+                let mut bu = 0.0;
+                for j in 0..r {
+                    bu += b[(row, j)] * sig.u[(k, j)];
+                }
+                *tv = ax + bu;
+            }
+            for (xv, tv) in xn.iter_mut().zip(&t) {
+                *xv += tv * w;
+            }
+        }
+        std::mem::swap(&mut x, &mut xn);
+        // diverged (as `LpvSs::simulate` marks it: the rest of the run is NaN)
+        let diverged = !x.iter().all(|v| v.is_finite())
+            || x.iter().fold(0.0f64, |a, v| a.max(v.abs())) > 1e150;
+        if diverged && k + 1 < sig.len() {
+            return f64::INFINITY;
+        }
+    }
+    if err.is_finite() {
+        err
     } else {
         f64::INFINITY
     }
@@ -464,6 +566,10 @@ pub struct SimSelection {
     pub singular_values: Vec<f64>,
     /// State candidates U^T Gamma K Z (all f l rows) for windows 0..=N-p (eq. (16)).
     pub states: DMatrix<f64>,
+    /// The score of the chosen point and order (squared simulation error on the
+    /// validation data, or the AIC value on the training record): comparable between past
+    /// windows on the same record, which `sparse::sv_over_depths` relies on.
+    pub score: f64,
     /// Lambda relative to lambda_max.
     pub lambda: f64,
     /// Non-zero columns of theta.
@@ -496,6 +602,61 @@ pub fn select_by_simulation(
     orders: &[usize],
     feedthrough: bool,
 ) -> Result<SimSelection, BpdnError> {
+    select_by_simulation_with(dims, f, g, y, slab, val, orders, feedthrough, Engine::Auto)
+}
+
+/// Which engine runs the group-lasso path of [`select_by_simulation_with`].
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Engine {
+    /// The core's covariance-update engine (`lpvid::lasso::CoordinateDescent`) on the
+    /// lazily evaluated Gram: a move costs q, a new active column q N.
+    Covariance,
+    /// The residual (sample-space) engine of [`super::sample_cd`]: a move costs N, a KKT
+    /// pass q N.
+    SampleSpace,
+    /// The sample-space engine when the regressors outnumber the windows, else the
+    /// covariance engine.
+    Auto,
+}
+
+impl Engine {
+    /// The engine `Auto` resolves to for q regressors and N windows.
+    pub fn resolve(self, regressors: usize, windows: usize) -> Engine {
+        match self {
+            Engine::Auto if regressors > windows => Engine::SampleSpace,
+            Engine::Auto => Engine::Covariance,
+            e => e,
+        }
+    }
+}
+
+/// The path point of [`select_by_simulation_with`] scored best so far.
+struct Best {
+    score: f64,
+    error: f64,
+    order: usize,
+    index: usize,
+    lambda: f64,
+    active: usize,
+    theta: Vec<f64>,
+    sv: Vec<f64>,
+    states: DMatrix<f64>,
+}
+
+/// [`select_by_simulation`] with the path engine given (both solve the same problems to
+/// the same tolerance; `benches/bpdn.rs` times them side by side).
+#[allow(clippy::too_many_arguments)]
+pub fn select_by_simulation_with(
+    dims: &PbsidDims,
+    f: usize,
+    g: &LazyGram,
+    y: &[f64],
+    slab: &Slab<'_, f64>,
+    val: Option<&Slab<'_, f64>>,
+    orders: &[usize],
+    feedthrough: bool,
+    engine: Engine,
+) -> Result<SimSelection, BpdnError> {
     let (r, l, m, p) = (dims.r, dims.l, dims.m(), dims.p);
     let q = g.q;
     let windows = g.n;
@@ -523,7 +684,6 @@ pub fn select_by_simulation(
     let mut z_last = vec![0.0; dims.q()?];
     write_pbsid_regressor(dims, slab, windows, &mut z_last);
     let cross = g.cross(y, l);
-    let prob = Problem::new(g, &cross, l, Penalty::Group)?;
     // Each point only has to rank well: a 1e-5 relative max-change (at most 100 sweeps)
     // gives the same choices on B2 as 1e-7 (mean VAF within 0.05 at p = 8, 12, 14) at less
     // than half the time.
@@ -533,96 +693,95 @@ pub fn select_by_simulation(
         n_lambda: 50,
         lambda_min_ratio: 1e-4,
     };
-    let mut engine = CoordinateDescent::new(l, q, vec![0.0; lpvid::lasso::work_len(l, q)])?;
     let mut theta = vec![0.0; l * q];
-    // (score, simulation error, order, path index, lambda, active, theta, sv, states)
-    type Best = (
-        f64,
-        f64,
-        usize,
-        usize,
-        f64,
-        usize,
-        Vec<f64>,
-        Vec<f64>,
-        DMatrix<f64>,
-    );
     let mut best: Option<Best> = None;
     let mut lmax = 0.0;
     let mut since = 0usize;
     let mut err_msg = None;
-    let points = engine
-        .path(&prob, &settings, &mut theta, |fit, th| {
-            if fit.index == 0 {
-                lmax = fit.lambda;
+    let mut visit = |fit: &lpvid::lasso::Fit<f64>, th: &[f64]| {
+        if fit.index == 0 {
+            lmax = fit.lambda;
+        }
+        let gkz = gamma_kz(dims, f, th, g, &z_last);
+        let (sv, x) = match states_from_gkz(&gkz, windows) {
+            Ok(v) => v,
+            Err(e) => {
+                err_msg = Some(BpdnError::from(e));
+                return ControlFlow::Break(());
             }
-            let gkz = gamma_kz(dims, f, th, g, &z_last);
-            let (sv, x) = match states_from_gkz(&gkz, windows) {
-                Ok(v) => v,
-                Err(e) => {
-                    err_msg = Some(BpdnError::from(e));
-                    return ControlFlow::Break(());
-                }
+        };
+        let mut improved = false;
+        for &n in &orders {
+            let states = x.rows(0, n).into_owned();
+            let Ok(model) = realize_from_states(dims, slab, &states, feedthrough) else {
+                continue;
             };
-            let mut improved = false;
-            for &n in &orders {
-                let states = x.rows(0, n).into_owned();
-                let Ok(model) = realize_from_states(dims, slab, &states, feedthrough) else {
-                    continue;
-                };
-                let v = simulation_error(&model, &scored);
-                let score = if val.is_some() {
-                    v
-                } else {
-                    nl * (v.max(1e-300) / nl).ln() + 2.0 * parameter_count(n, r, l, m) as f64
-                };
-                if score < best.as_ref().map(|b| b.0).unwrap_or(f64::INFINITY) {
-                    best = Some((
-                        score,
-                        v,
-                        n,
-                        fit.index,
-                        fit.lambda,
-                        fit.active,
-                        th.to_vec(),
-                        sv.clone(),
-                        x.clone(),
-                    ));
-                    improved = true;
-                }
+            let v = simulation_error(&model, &scored);
+            let score = if val.is_some() {
+                v
+            } else {
+                nl * (v.max(1e-300) / nl).ln() + 2.0 * parameter_count(n, r, l, m) as f64
+            };
+            if score < best.as_ref().map(|b| b.score).unwrap_or(f64::INFINITY) {
+                best = Some(Best {
+                    score,
+                    error: v,
+                    order: n,
+                    index: fit.index,
+                    lambda: fit.lambda,
+                    active: fit.active,
+                    theta: th.to_vec(),
+                    sv: sv.clone(),
+                    states: x.clone(),
+                });
+                improved = true;
             }
-            if best.is_some() && (fit.lambda / lmax.max(1e-300)) < 1.0 {
-                since = if improved { 0 } else { since + 1 };
-                if since >= PATIENCE {
-                    return ControlFlow::Break(());
-                }
+        }
+        if best.is_some() && (fit.lambda / lmax.max(1e-300)) < 1.0 {
+            since = if improved { 0 } else { since + 1 };
+            if since >= PATIENCE {
+                return ControlFlow::Break(());
             }
-            ControlFlow::Continue(())
-        })
-        .map_err(BpdnError::Path)?;
+        }
+        ControlFlow::Continue(())
+    };
+    let points = match engine.resolve(q, windows) {
+        Engine::SampleSpace => {
+            super::sample_cd::path(g, y, &cross, l, &settings, &mut theta, &mut visit)?
+        }
+        _ => {
+            let prob = Problem::new(g, &cross, l, Penalty::Group)?;
+            let mut cd = CoordinateDescent::new(l, q, vec![0.0; lpvid::lasso::work_len(l, q)])?;
+            cd.path(&prob, &settings, &mut theta, &mut visit)
+                .map_err(BpdnError::Path)?
+        }
+    };
     if let Some(m) = err_msg {
         return Err(m);
     }
-    let (_, v, order, index, lambda_abs, active, theta, sv, states) =
-        best.ok_or(BpdnError::NothingRealized)?;
-    let lambda = if lmax > 0.0 { lambda_abs / lmax } else { 0.0 };
+    let b = best.ok_or(BpdnError::NothingRealized)?;
+    let lambda = if lmax > 0.0 { b.lambda / lmax } else { 0.0 };
     let target = if val.is_some() {
         "validation data"
     } else {
         "training record, AIC order penalty"
     };
     let reason = format!(
-        "BPDN-SV: point {index} of {points} (lambda = {lambda:.3e} lambda_max, {active} active columns) with order {order} has the smallest free-run simulation error on the {target} (RMS {:.4e}, orders {:?} tried)",
-        (v / nl).sqrt(),
+        "BPDN-SV: point {} of {points} (lambda = {lambda:.3e} lambda_max, {} active columns) with order {} has the smallest free-run simulation error on the {target} (RMS {:.4e}, orders {:?} tried)",
+        b.index,
+        b.active,
+        b.order,
+        (b.error / nl).sqrt(),
         orders
     );
     Ok(SimSelection {
-        theta,
-        order,
-        singular_values: sv,
-        states,
+        theta: b.theta,
+        order: b.order,
+        singular_values: b.sv,
+        states: b.states,
+        score: b.score,
         lambda,
-        active,
+        active: b.active,
         points,
         reason,
     })
@@ -632,6 +791,35 @@ pub fn select_by_simulation(
 mod tests {
     use super::*;
     use nalgebra::DVector;
+
+    /// The allocation-free scorer equals the squared free-run error of `LpvSs::simulate` on
+    /// the B2 and B3 truths (B3: two inputs, outputs and scheduling signals) and on a
+    /// diverging model.
+    #[test]
+    fn simulation_error_equals_the_simulated_error() {
+        let b2 = crate::systems::b2(75, 25.0, 3);
+        let b3 = crate::systems::b3(120, 3);
+        let mut unstable = crate::systems::b2_truth();
+        unstable.a[0][(0, 0)] = 3.0;
+        for (model, sig) in [
+            (crate::systems::b2_truth(), &b2.train),
+            (crate::systems::b3_truth(), &b3.train),
+            (unstable, &b2.train),
+        ] {
+            let yh = model.simulate(sig, None);
+            let want: f64 = yh
+                .iter()
+                .zip(sig.y.iter())
+                .map(|(a, b)| (a - b) * (a - b))
+                .sum();
+            let got = simulation_error(&model, sig);
+            if want.is_finite() {
+                assert!((got - want).abs() <= 1e-12 * want, "{got} vs {want}");
+            } else {
+                assert_eq!(got, f64::INFINITY);
+            }
+        }
+    }
 
     /// The sparse Gamma K Z equals the dense product gamma_k(CK) * Z column by column.
     #[test]

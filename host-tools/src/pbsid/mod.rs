@@ -34,6 +34,7 @@ pub mod order;
 pub mod primal;
 pub mod realize;
 pub mod ridge;
+pub mod sample_cd;
 pub mod scaling;
 pub mod settings;
 pub mod sparse;
@@ -128,6 +129,9 @@ pub struct StateCandidates {
     q: usize,
     windows: usize,
     past: usize,
+    /// State time of the first column of `x`: the past window p, or earlier for a sparse
+    /// estimate of shallower depth (see `bpdn::depth`).
+    start: usize,
 }
 
 /// The regression and state candidates of [`fit_with_validation`] (all but the order choice
@@ -203,12 +207,16 @@ pub fn state_candidates(
     };
     let mut solver_reason = solver_reason;
     let mut sparse_order = None;
+    // state time of the first column of x (p, or earlier for a sparse estimate of
+    // shallower depth, see bpdn::depth)
+    let mut start = p;
     let (sv, x, reg) = match solver {
         _ if sparse => {
-            let (sv, x, reg, why, order) =
+            let (sv, x, reg, why, order, first) =
                 sparse::bpdn_states(&dims, f, &slab, windows, val_rows.as_deref(), opts)?;
             solver_reason = format!("sparse form with explicit regressors ({why})");
             sparse_order = order;
+            start = first;
             (sv, x, reg)
         }
         Solver::Dual => dual::dual_states(&dims, f, &slab, windows, opts)?,
@@ -225,6 +233,7 @@ pub fn state_candidates(
         q,
         windows,
         past: p,
+        start,
     })
 }
 
@@ -270,7 +279,15 @@ impl StateCandidates {
             self.windows,
         );
         let states = self.x.rows(0, order).into_owned();
-        let scaled = realize_from_states(&dims, &slab, &states, opts.feedthrough)?;
+        let scaled = realize_from_states(
+            &PbsidDims::new(r, l, s, self.start)?,
+            &slab,
+            &states,
+            opts.feedthrough,
+        )?;
+        // the fit reports the states of times p..=N (what the observer step aligns with)
+        let skip = self.past - self.start;
+        let states = states.columns(skip, states.ncols() - skip).into_owned();
         let mut model = unscale(&scaled, &scaling);
         let mut refinement = None;
         if opts.refine {

@@ -4,7 +4,7 @@
 //! (section 4.3), from the data or from statistics alone.
 
 use lpvid::{packed_len, Gram, PbsidDims, Samples, Slab};
-use nalgebra::{DMatrix, DVector};
+use nalgebra::DMatrix;
 
 use super::error::FitError;
 use crate::linalg::{min_norm_from_normal, sym_eig, LinalgError};
@@ -133,10 +133,20 @@ pub fn realize_from_states(
         let x = states.column(k);
         let u = slab.u(k + p);
         let y = slab.y(k + p);
-        let e = DVector::from_column_slice(y) - &c * x - &d * DVector::from_column_slice(u);
         xi[..n].copy_from_slice(x.as_slice());
         xi[n..n + r].copy_from_slice(u);
-        xi[n + r..].copy_from_slice(e.as_slice());
+        // innovation e = y - C x - D u, without a temporary per sample
+        for o in 0..l {
+            let mut cx = 0.0;
+            for j in 0..n {
+                cx += c[(o, j)] * x[j];
+            }
+            let mut du = 0.0;
+            for j in 0..r {
+                du += d[(o, j)] * u[j];
+            }
+            xi[n + r + o] = (y[o] - cx) - du;
+        }
         let mu = slab.mu(k + p);
         for i in 0..m {
             for (dstv, v) in row[i * nxi..(i + 1) * nxi].iter_mut().zip(&xi) {

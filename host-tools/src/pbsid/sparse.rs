@@ -16,12 +16,105 @@ use super::ridge::{RegressionInfo, Spectrum, RANK_TOL};
 use super::settings::{BpdnScore, Order, PbsidOptions, Reg};
 use crate::linalg::sym_eig;
 
+/// Our BPDN-SV over the past windows d = 1..=p: the path, realization and score of
+/// [`bpdn::select_by_simulation`] on the regressors z^d (eq. (13) with past window d) of
+/// windows 0..N-d, the best score over all (d, lambda, order) wins. The columns of z^d are
+/// the lag <= d columns of z^p for the same target, so depth d is problem (33) with the
+/// left part of [C K^p, D] beyond lag d set to zero (the sparsity the paper's section 4.2
+/// expects of a stable predictor), fitted on the N - d windows that exist for it instead of
+/// the N - p of the full regressor. Depths are fitted on up to two threads (deepest, the
+/// costliest, first); ties go to the shallower depth. Returns the selection and its depth.
+pub fn sv_over_depths(
+    dims: &PbsidDims,
+    slab: &Slab<'_, f64>,
+    val: Option<&Slab<'_, f64>>,
+    opts: &PbsidOptions,
+) -> Result<(bpdn::SimSelection, usize), FitError> {
+    let workers = std::thread::available_parallelism().map_or(1, |v| v.get());
+    sv_over_depths_with(dims, slab, val, opts, workers.min(2))
+}
+
+/// [`sv_over_depths`] on `workers` threads (1: in the calling thread); the result does not
+/// depend on it (`benches/bpdn.rs` times 1 against 2).
+pub fn sv_over_depths_with(
+    dims: &PbsidDims,
+    slab: &Slab<'_, f64>,
+    val: Option<&Slab<'_, f64>>,
+    opts: &PbsidOptions,
+    workers: usize,
+) -> Result<(bpdn::SimSelection, usize), FitError> {
+    let p = dims.p;
+    let one = |d: usize| -> Result<Option<bpdn::SimSelection>, FitError> {
+        let l = dims.l;
+        let dims_d = PbsidDims::new(dims.r, l, dims.s, d)?;
+        let f_d = opts.future.map_or(d, |f| f.min(d));
+        let w_d = slab.len().saturating_sub(d);
+        let orders: Vec<usize> = match opts.order {
+            Order::Fixed(n) if n <= f_d * l => vec![n],
+            Order::Fixed(_) => return Ok(None),
+            Order::Auto => (1..=opts.max_order.min(f_d * l).min(w_d / 2).max(1)).collect(),
+        };
+        let all: Vec<usize> = (0..w_d).collect();
+        let (g, y) = bpdn::LazyGram::build(&dims_d, slab, &all, opts.feedthrough)?;
+        let sel =
+            bpdn::select_by_simulation(&dims_d, f_d, &g, &y, slab, val, &orders, opts.feedthrough)?;
+        Ok(Some(sel))
+    };
+    let next = std::sync::atomic::AtomicUsize::new(0);
+    let workers = workers.clamp(1, p.max(1));
+    let work = || {
+        let mut out = Vec::new();
+        loop {
+            let i = next.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+            if i >= p {
+                return out;
+            }
+            let d = p - i;
+            out.push((d, one(d)));
+        }
+    };
+    let mut results: Vec<(usize, Result<Option<bpdn::SimSelection>, FitError>)> = if workers <= 1 {
+        work()
+    } else {
+        std::thread::scope(|sc| {
+            let handles: Vec<_> = (0..workers).map(|_| sc.spawn(work)).collect();
+            handles
+                .into_iter()
+                .flat_map(|h| h.join().expect("BPDN-SV depth worker panicked"))
+                .collect()
+        })
+    };
+    results.sort_by_key(|r| r.0);
+    let mut best: Option<(bpdn::SimSelection, usize)> = None;
+    let mut first_err = None;
+    for (d, r) in results {
+        match r {
+            Ok(Some(sel)) => {
+                if best.as_ref().is_none_or(|(b, _)| sel.score < b.score) {
+                    best = Some((sel, d));
+                }
+            }
+            Ok(None) => {}
+            Err(e) => {
+                first_err.get_or_insert(e);
+            }
+        }
+    }
+    match (best, first_err) {
+        (Some(b), _) => Ok(b),
+        (None, Some(e)) => Err(e),
+        (None, None) => Err(bpdn::BpdnError::NoCandidateOrder.into()),
+    }
+}
+
 /// Sparse path (sparse paper section 4.2): [C K^p, D] by the group-lasso path of (33) on
 /// explicit regressors. BPDN-AIC: the point of rule (34), then Gamma^p K^p Z by eq. (14),
 /// the SVD (15) and the state candidates (16) for windows 0..=N-p. BPDN-SV with
-/// `BpdnScore::Simulation` (default): the point and the order whose realized model
-/// simulates best ([`bpdn::select_by_simulation`]); the chosen order is returned with its
-/// reason. BPDN-SV with `BpdnScore::OneStep`: Algorithm 1 of the paper ([`bpdn_paper`]).
+/// `BpdnScore::Simulation` (default): the depth, point and order whose realized model
+/// simulates best ([`sv_over_depths`]); the chosen order is returned with its reason. BPDN-SV
+/// with `BpdnScore::OneStep`: Algorithm 1 of the paper ([`bpdn_paper`]). The last value is
+/// the past window of the returned states (column k is the state of time depth + k): the
+/// chosen depth for our BPDN-SV, p otherwise.
 #[allow(clippy::type_complexity)]
 pub(crate) fn bpdn_states(
     dims: &PbsidDims,
@@ -37,17 +130,12 @@ pub(crate) fn bpdn_states(
         RegressionInfo,
         String,
         Option<(usize, String)>,
+        usize,
     ),
     FitError,
 > {
     let (p, l) = (dims.p, dims.l);
-    let all: Vec<usize> = (0..windows).collect();
-    let (g, y) = bpdn::LazyGram::build(dims, slab, &all, opts.feedthrough)?;
-    if opts.reg == Reg::BpdnSv && opts.bpdn_score == BpdnScore::OneStep {
-        let (sv, x, info, why) = bpdn_paper(dims, f, slab, windows, &g, val_rows, opts)?;
-        return Ok((sv, x, info, why, None));
-    }
-    if opts.reg == Reg::BpdnSv {
+    if opts.reg == Reg::BpdnSv && opts.bpdn_score == BpdnScore::Simulation {
         let val_slab = match val_rows {
             Some(rows) => {
                 let vs = Slab::new(rows, dims.r, dims.l, dims.m())?;
@@ -58,20 +146,7 @@ pub(crate) fn bpdn_states(
             }
             None => None,
         };
-        let orders: Vec<usize> = match opts.order {
-            Order::Fixed(n) => vec![n],
-            Order::Auto => (1..=opts.max_order.min(f * l).min(windows / 2).max(1)).collect(),
-        };
-        let sel = bpdn::select_by_simulation(
-            dims,
-            f,
-            &g,
-            &y,
-            slab,
-            val_slab.as_ref(),
-            &orders,
-            opts.feedthrough,
-        )?;
+        let (sel, depth) = sv_over_depths(dims, slab, val_slab.as_ref(), opts)?;
         let info = RegressionInfo {
             lambda: Some((sel.lambda, 1.0)),
             dof: sel.active as f64,
@@ -79,17 +154,29 @@ pub(crate) fn bpdn_states(
         let why = match opts.order {
             Order::Fixed(n) => format!("order {n} given"),
             Order::Auto => format!(
-                "order {} realizes the model with the best free-run score on the BPDN-SV path",
+                "order {} realizes the model with the best free-run score on the BPDN-SV paths",
                 sel.order
             ),
         };
+        let reason = format!(
+            "{}; past windows 1..={p} scored, depth {depth} chosen",
+            sel.reason
+        );
         return Ok((
             sel.singular_values,
             sel.states,
             info,
-            sel.reason,
+            reason,
             Some((sel.order, why)),
+            depth,
         ));
+    }
+    let all: Vec<usize> = (0..windows).collect();
+    let (g, y) = bpdn::LazyGram::build(dims, slab, &all, opts.feedthrough)?;
+    if opts.reg == Reg::BpdnSv {
+        // BpdnScore::OneStep
+        let (sv, x, info, why) = bpdn_paper(dims, f, slab, windows, &g, val_rows, opts)?;
+        return Ok((sv, x, info, why, None, p));
     }
     // residual of the unregularised (minimum-norm) solution, for rule (34), from the kernel
     let rss_unreg = {
@@ -117,7 +204,7 @@ pub(crate) fn bpdn_states(
         lambda: Some((sel.lambda, 1.0)),
         dof: sel.active as f64,
     };
-    Ok((sv, x, info, sel.reason, None))
+    Ok((sv, x, info, sel.reason, None, p))
 }
 
 /// BPDN-SV as the sparse paper does it (Algorithm 1, section 5.1): the group-lasso path on
