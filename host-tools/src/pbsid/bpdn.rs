@@ -473,72 +473,32 @@ pub fn slab_signals(slab: &Slab<'_, f64>, r: usize, l: usize) -> Signals {
 }
 
 /// Sum of squared free-run simulation errors of `model` on `sig` (from x0 = 0); +inf when
-/// the simulation diverges. The free run of [`LpvSs::simulate`] (same operations in the
-/// same order) without its per-sample allocations: BPDN-SV scores every path point and
-/// order with it.
+/// the simulation diverges. The free run of [`LpvSs::simulate`] (its allocation-free step,
+/// [`LpvSs::output_into`] and [`LpvSs::state_into`]) scored as it goes: BPDN-SV scores every
+/// path point and order with it.
 pub fn simulation_error(model: &LpvSs, sig: &Signals) -> f64 {
-    let (n, l, m) = (model.n(), model.l(), model.m());
-    let r = model.b[0].ncols();
-    let s = sig.p.ncols();
-    let mut x = vec![0.0; n];
-    let mut xn = vec![0.0; n];
-    let mut t = vec![0.0; n];
-    let mut mu = vec![0.0; s + 1];
-    let mut c = DMatrix::zeros(l, n);
-    let mut d = DMatrix::zeros(l, r);
+    let (n, r, l, m) = (model.n(), model.r(), model.l(), model.m());
+    let s = sig.p.ncols().min(m - 1);
+    let (mut x, mut xn) = (vec![0.0; n], vec![0.0; n]);
+    let (mut mu, mut u, mut y) = (vec![0.0; m], vec![0.0; r], vec![0.0; l]);
+    mu[0] = 1.0;
     let mut err = 0.0;
     for k in 0..sig.len() {
-        mu[0] = 1.0;
         for i in 0..s {
             mu[i + 1] = sig.p[(k, i)];
         }
-        for (dst, mats) in [(&mut c, &model.c), (&mut d, &model.d)] {
-            if mats.len() == 1 {
-                dst.copy_from(&mats[0]);
-            } else {
-                dst.fill(0.0);
-                for (mat, w) in mats.iter().zip(&mu) {
-                    *dst += mat * *w;
-                }
-            }
+        for (j, v) in u.iter_mut().enumerate() {
+            *v = sig.u[(k, j)];
         }
-        for o in 0..l {
-            let mut cx = 0.0;
-            for (j, xj) in x.iter().enumerate() {
-                cx += c[(o, j)] * xj;
-            }
-            let mut du = 0.0;
-            for j in 0..r {
-                du += d[(o, j)] * sig.u[(k, j)];
-            }
-            let e = (cx + du) - sig.y[(k, o)];
+        model.output_into(&mu, &x, &u, &mut y);
+        for (o, yo) in y.iter().enumerate() {
+            let e = yo - sig.y[(k, o)];
             err += e * e;
         }
-        xn.fill(0.0);
-        for (i, &w) in mu.iter().enumerate().take(m) {
-            if w == 0.0 {
-                continue;
-            }
-            let (a, b) = (&model.a[i], &model.b[i]);
-            for (row, tv) in t.iter_mut().enumerate() {
-                let mut ax = 0.0;
-                for (j, xj) in x.iter().enumerate() {
-                    ax += a[(row, j)] * xj;
-                }
-                let mut bu = 0.0;
-                for j in 0..r {
-                    bu += b[(row, j)] * sig.u[(k, j)];
-                }
-                *tv = ax + bu;
-            }
-            for (xv, tv) in xn.iter_mut().zip(&t) {
-                *xv += tv * w;
-            }
-        }
+        model.state_into(&mu, &x, &u, None, &mut xn);
         std::mem::swap(&mut x, &mut xn);
         // diverged (as `LpvSs::simulate` marks it: the rest of the run is NaN)
-        let diverged = !x.iter().all(|v| v.is_finite())
-            || x.iter().fold(0.0f64, |a, v| a.max(v.abs())) > 1e150;
+        let diverged = x.iter().any(|v| !v.is_finite() || v.abs() > 1e150);
         if diverged && k + 1 < sig.len() {
             return f64::INFINITY;
         }
