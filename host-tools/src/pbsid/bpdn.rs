@@ -477,6 +477,13 @@ pub fn slab_signals(slab: &Slab<'_, f64>, r: usize, l: usize) -> Signals {
 /// [`LpvSs::output_into`] and [`LpvSs::state_into`]) scored as it goes: BPDN-SV scores every
 /// path point and order with it.
 pub fn simulation_error(model: &LpvSs, sig: &Signals) -> f64 {
+    simulation_error_below(model, sig, f64::INFINITY)
+}
+
+/// [`simulation_error`], abandoned (+inf) as soon as the running sum reaches `bound`: the
+/// sum only grows, so a candidate that reaches the best score so far cannot beat it, and
+/// the selection is the same as with every candidate simulated to the end.
+pub fn simulation_error_below(model: &LpvSs, sig: &Signals, bound: f64) -> f64 {
     let (n, r, l, m) = (model.n(), model.r(), model.l(), model.m());
     let s = sig.p.ncols().min(m - 1);
     let (mut x, mut xn) = (vec![0.0; n], vec![0.0; n]);
@@ -494,6 +501,9 @@ pub fn simulation_error(model: &LpvSs, sig: &Signals) -> f64 {
         for (o, yo) in y.iter().enumerate() {
             let e = yo - sig.y[(k, o)];
             err += e * e;
+        }
+        if err >= bound {
+            return f64::INFINITY;
         }
         model.state_into(&mu, &x, &u, None, &mut xn);
         std::mem::swap(&mut x, &mut xn);
@@ -676,11 +686,19 @@ pub fn select_by_simulation_with(
             let Ok(model) = realize_from_states(dims, slab, &states, feedthrough) else {
                 continue;
             };
-            let v = simulation_error(&model, &scored);
+            // the error at which this order's score would reach the best so far (with a
+            // margin over the rounding of ln/exp: only sure losers are abandoned)
+            let penalty = 2.0 * parameter_count(n, r, l, m) as f64;
+            let bound = match &best {
+                None => f64::INFINITY,
+                Some(b) if val.is_some() => b.score,
+                Some(b) => nl * ((b.score - penalty) / nl).exp(),
+            } * (1.0 + 1e-9);
+            let v = simulation_error_below(&model, &scored, bound);
             let score = if val.is_some() {
                 v
             } else {
-                nl * (v.max(1e-300) / nl).ln() + 2.0 * parameter_count(n, r, l, m) as f64
+                nl * (v.max(1e-300) / nl).ln() + penalty
             };
             if score < best.as_ref().map(|b| b.score).unwrap_or(f64::INFINITY) {
                 best = Some(Best {
