@@ -183,6 +183,51 @@ fn what_the_stream_cannot_run_falls_back() {
     assert_eq!(names.len(), 1);
 }
 
+#[test]
+fn a_diverging_run_is_found_at_the_same_sample_and_writes_nothing() {
+    use lpvid_host::simulate::diverged_at;
+    use lpvid_host::stream::SimulateFailure;
+    let dir = tempfile::tempdir().unwrap();
+    let data = systems::b1(2000, 0.1, 12).val;
+    let path = write_data(dir.path(), "d.csv", &data);
+    let ds = Dataset::read_csv(&path).unwrap();
+    let out = dir.path().join("o.csv");
+    std::fs::write(&out, "keep").unwrap();
+    for (seed, gain) in [(1u64, 1.5), (4, 2.0), (6, 4.0)] {
+        let mut model = b1_model(seed, SignalMap::standard(2, 3, 3));
+        let ModelKind::Ss(ss) = &mut model.kind else {
+            panic!()
+        };
+        ss.a.iter_mut().for_each(|a| *a *= gain);
+        for mode in [Mode::FreeRun, Mode::Predictor] {
+            let mem = score_from(&model, &ds, mode, X0::Zero).unwrap();
+            let k = diverged_at(&run(&model, &ds, mode, X0::Zero).unwrap().yhat);
+            assert_eq!(mem.diverged_at, k);
+            for chunk in [3, 100] {
+                let (st, _) = score_streaming_chunks(&model, &path, mode, X0::Zero, chunk).unwrap();
+                assert!(score_diff(&mem, &st) <= 1e-12, "{mem:?} {st:?}");
+                let sim = simulate_streaming_chunks(&model, &path, mode, X0::Zero, &out, chunk);
+                match (sim.unwrap(), k) {
+                    (Err(SimulateFailure::Diverged(a)), Some(b)) => assert_eq!(a, b),
+                    (Ok(s), None) => drop(s.staged),
+                    (r, k) => panic!("{r:?} {k:?}"),
+                }
+            }
+        }
+    }
+    // the free run diverged somewhere (the test sees the divergence)
+    let mut model = b1_model(1, SignalMap::standard(2, 3, 3));
+    if let ModelKind::Ss(ss) = &mut model.kind {
+        ss.a.iter_mut().for_each(|a| *a *= 4.0);
+    }
+    assert!(score_from(&model, &ds, Mode::FreeRun, X0::Zero)
+        .unwrap()
+        .diverged_at
+        .is_some());
+    assert_eq!(std::fs::read_to_string(&out).unwrap(), "keep");
+    assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 2);
+}
+
 fn cli(args: &[&str]) -> Result<String, String> {
     let mut out = Vec::new();
     let mut all = vec!["lpvid"];
@@ -222,6 +267,12 @@ fn the_cli_streams_large_files_with_the_same_results_and_errors() {
         };
         let mem = score_from(&model, &ds, mode, x).unwrap();
         let mem = serde_json::to_value(&mem).unwrap();
+        // the human summary counts the rows as the in-memory one
+        args.pop_if(|a| *a == "--predictor");
+        args.pop();
+        let text = cli(&args[..]).unwrap();
+        let rows_said = format!("scored on the other {}", 30_000 - 50);
+        assert_eq!(text.contains(&rows_said), x0 == "estimate", "{text}");
         for key in ["file", "mode", "skipped", "diverged_at"] {
             assert_eq!(got["score"][key], mem[key], "{key}");
         }
