@@ -9,9 +9,10 @@
 //!   state or from one estimated on the first samples ([`crate::simulate::estimate_x0`] on
 //!   the rows held until there are enough), scored from running sums; `simulate` writes
 //!   each chunk's rows into the staged output ([`crate::data::stage_writer`]). Delayed
-//!   factors of the signal map read the rows kept from the chunk before. Left to the
-//!   in-memory path: lpv-arx models, the free run through own-output feedback, factors on
-//!   the sample index (`run_streamable`).
+//!   factors of the signal map read the rows kept from the chunk before, and a free run
+//!   through own-output feedback the outputs kept from it
+//!   ([`crate::simulate::free_run_ss_into`], the in-memory run's loop). Left to the
+//!   in-memory path: lpv-arx models and factors on the sample index (`run_streamable`).
 //!
 //! All of them run the one simulation step ([`crate::lpvss::LpvSs::output_into`] and
 //! [`crate::lpvss::LpvSs::state_into`], struct `ChunkRun`), so the outputs equal the
@@ -36,11 +37,11 @@ use nalgebra::DMatrix;
 
 use crate::data::{stage_writer, DataError, Dataset, StagedWrite, MAX_LINE_BYTES};
 use crate::lpvss::{LpvSs, Signals};
-use crate::model::{describe, ModelFile, ModelKind, SignalMap, SAMPLE_INDEX};
+use crate::model::{describe, Feedback, ModelFile, ModelKind, SignalMap, SAMPLE_INDEX};
 use crate::observer;
 use crate::pbsid::stream::{streamable, PassOne};
 use crate::pipeline::{pbsid_fit_record, pbsid_warnings, Identified, PbsidSettings};
-use crate::simulate::{estimate_x0, Mode, Score, DIVERGED, X0};
+use crate::simulate::{estimate_x0, free_run_ss_into, Mode, Score, DIVERGED, X0};
 
 /// Rows per chunk: the memory of the streamed path is a few chunks, whatever the file.
 pub const CHUNK_ROWS: usize = 8192;
@@ -215,6 +216,10 @@ struct ChunkRun<'a> {
     y: Vec<(f64, f64)>,
     err: Vec<(f64, f64)>,
     sse: Vec<f64>,
+    /// The free run through own-output feedback: its last outputs (at most `keep` rows),
+    /// which the delayed factors of the next chunk read.
+    kept: DMatrix<f64>,
+    keep: usize,
 }
 
 impl<'a> ChunkRun<'a> {
@@ -238,21 +243,56 @@ impl<'a> ChunkRun<'a> {
             y: vec![(0.0, 0.0); l],
             err: vec![(0.0, 0.0); l],
             sse: vec![0.0; l],
+            kept: DMatrix::zeros(0, l),
+            keep: 0,
         }
     }
 
     /// The next samples; their model outputs into `out` (rows as `sig`, l columns) if given.
-    fn update(&mut self, sig: &Signals, mut out: Option<&mut DMatrix<f64>>) {
+    fn update(&mut self, sig: &Signals, out: Option<&mut DMatrix<f64>>) {
+        self.update_after(sig, &Feedback::default(), 0, out);
+    }
+
+    /// [`ChunkRun::update`] on the rows of `sig` from `h` on (the rows before are the
+    /// end of the chunk before, which the delayed factors and the feedback `fb` read): in
+    /// the free run through own-output feedback the samples are run by
+    /// [`free_run_ss_into`] from the outputs kept of the chunk before, else by the step here.
+    fn update_after(
+        &mut self,
+        sig: &Signals,
+        fb: &Feedback,
+        h: usize,
+        mut out: Option<&mut DMatrix<f64>>,
+    ) {
         let m = self.model;
+        let (n, l) = (sig.len(), m.l());
+        let feedback = !self.predictor && !fb.is_empty();
+        // the free run through the feedback: the outputs of the chunk before, then these
+        let mut run = DMatrix::<f64>::zeros(if feedback { n } else { 0 }, l);
+        if feedback {
+            let kept = self.kept.nrows();
+            for i in 0..h.min(kept) {
+                run.set_row(h - 1 - i, &self.kept.row(kept - 1 - i));
+            }
+            if self.stopped {
+                run.rows_mut(h, n - h).fill(f64::NAN);
+            } else if !free_run_ss_into(m, sig, fb, &mut self.x, h, n, &mut run) {
+                self.stopped = true;
+            }
+        }
         let s = sig.p.ncols().min(m.m() - 1);
-        for k in 0..sig.len() {
+        for k in h..n {
             for q in 0..s {
                 self.mu[q + 1] = sig.p[(k, q)];
             }
             for (j, v) in self.u.iter_mut().enumerate() {
                 *v = sig.u[(k, j)];
             }
-            if self.stopped {
+            if feedback {
+                for (j, v) in self.yk.iter_mut().enumerate() {
+                    *v = run[(k, j)];
+                }
+            } else if self.stopped {
                 self.yk.iter_mut().for_each(|v| *v = f64::NAN);
             } else {
                 m.output_into(&self.mu, &self.x, &self.u, &mut self.yk);
@@ -264,21 +304,21 @@ impl<'a> ChunkRun<'a> {
             }
             if let Some(o) = out.as_deref_mut() {
                 for (j, v) in self.yk.iter().enumerate() {
-                    o[(k, j)] = *v;
+                    o[(k - h, j)] = *v;
                 }
             }
-            let n = (self.k + 1).saturating_sub(self.skip) as f64;
-            for j in 0..m.l() {
+            let count = (self.k + 1).saturating_sub(self.skip) as f64;
+            for j in 0..l {
                 let yv = sig.y[(k, j)];
                 let e = yv - self.yk[j];
                 self.ek[j] = e;
                 if self.k >= self.skip {
-                    welford(&mut self.y[j], yv, n);
-                    welford(&mut self.err[j], e, n);
+                    welford(&mut self.y[j], yv, count);
+                    welford(&mut self.err[j], e, count);
                     self.sse[j] += e * e;
                 }
             }
-            if !self.stopped {
+            if !self.stopped && !feedback {
                 let innovation = self.predictor.then_some(&self.ek[..]);
                 m.state_into(&self.mu, &self.x, &self.u, innovation, &mut self.xn);
                 std::mem::swap(&mut self.x, &mut self.xn);
@@ -287,6 +327,11 @@ impl<'a> ChunkRun<'a> {
                 }
             }
             self.k += 1;
+        }
+        if feedback {
+            // the outputs the next chunk's delayed feedback reads
+            let keep = self.keep.min(n);
+            self.kept = run.rows(n - keep, keep).into_owned();
         }
     }
 
@@ -476,19 +521,15 @@ pub fn identify_streaming_chunks(
 }
 
 /// Why the streamed validate/simulate hands a model to the in-memory path, if it does:
-/// an lpv-arx model; a free run through own-output feedback (a signal that reads the
-/// model's own output, [`crate::simulate::free_run_ss`]; the predictor reads the measured
-/// outputs and streams); a factor on the sample index `k`; a delay longer than
-/// [`CHUNK_ROWS`] (the rows kept for it) and the chunk.
+/// an lpv-arx model (its recursion, [`crate::simulate::arx_run_from`], reads the whole
+/// record); a factor on the sample index `k`; a delay longer than [`CHUNK_ROWS`] (the rows
+/// kept for it) and the chunk.
 /// Otherwise the model and the longest delay of its signal map.
-fn run_streamable(model: &ModelFile, mode: Mode, chunk_rows: usize) -> Option<(&LpvSs, usize)> {
+fn run_streamable(model: &ModelFile, chunk_rows: usize) -> Option<(&LpvSs, usize)> {
     let ModelKind::Ss(ss) = &model.kind else {
         return None;
     };
     let map = &model.signals;
-    if mode == Mode::FreeRun && map.has_feedback() {
-        return None;
-    }
     let mut delay = 0;
     for f in map
         .inputs
@@ -507,8 +548,8 @@ fn run_streamable(model: &ModelFile, mode: Mode, chunk_rows: usize) -> Option<(&
 
 /// A model's signals chunk by chunk: each chunk evaluated by [`SignalMap::evaluate`] after
 /// the last `delay` rows before it, so a delayed factor reads what it reads in the whole
-/// record; the own-output feedback ([`SignalMap::feedback`]) evaluated too when the map has
-/// one, so its errors fall back as the in-memory run would give them.
+/// record; the own-output feedback ([`SignalMap::feedback`]) on the same rows (empty when
+/// the map has none; its errors fall back as the in-memory run would give them).
 struct ChunkSignals<'a> {
     map: &'a SignalMap,
     delay: usize,
@@ -516,7 +557,9 @@ struct ChunkSignals<'a> {
 }
 
 impl ChunkSignals<'_> {
-    fn evaluate(&mut self, ds: &Dataset) -> Result<Signals, ()> {
+    /// The signals and the feedback of the rows kept and this chunk, and how many rows
+    /// were kept (the chunk's rows are those after them).
+    fn evaluate(&mut self, ds: &Dataset) -> Result<(Signals, Feedback, usize), ()> {
         let joined;
         let (src, h) = match self.history.take() {
             Some(mut prev) if self.delay > 0 => {
@@ -533,9 +576,7 @@ impl ChunkSignals<'_> {
             return Err(());
         }
         let sig = self.map.evaluate(src).map_err(|_| ())?;
-        if self.map.has_feedback() {
-            self.map.feedback(src).map_err(|_| ())?;
-        }
+        let fb = self.map.feedback(src).map_err(|_| ())?;
         if self.delay > 0 {
             let keep = self.delay.min(src.len());
             self.history = Some(Dataset {
@@ -548,11 +589,7 @@ impl ChunkSignals<'_> {
                     .collect(),
             });
         }
-        Ok(if h == 0 {
-            sig
-        } else {
-            sig.slice(h, sig.len() - h)
-        })
+        Ok((sig, fb, h))
     }
 }
 
@@ -588,7 +625,7 @@ struct FileRun<'a> {
 /// `x0`: with [`X0::Estimate`] the chunks are held until the first `samples` rows are read,
 /// the state is estimated from them by [`estimate_x0`] (the in-memory run's function, on
 /// the same rows) and the run starts. `None`: the in-memory path decides (a model
-/// [`run_streamable`] refuses, anything the chunked reading gives up on, bad data).
+/// `run_streamable` refuses, anything the chunked reading gives up on, bad data).
 fn run_file<'a>(
     model: &'a ModelFile,
     path: &Path,
@@ -597,7 +634,7 @@ fn run_file<'a>(
     chunk_rows: usize,
     mut sink: Option<Sink<'_>>,
 ) -> Option<FileRun<'a>> {
-    let (ss, delay) = run_streamable(model, mode, chunk_rows)?;
+    let (ss, delay) = run_streamable(model, chunk_rows)?;
     let samples = match x0 {
         X0::Zero => 0,
         X0::Estimate { samples } => samples,
@@ -607,18 +644,22 @@ fn run_file<'a>(
         delay,
         history: None,
     };
-    let mut run = (samples == 0).then(|| ChunkRun::new(ss, mode, &vec![0.0; ss.n()], 0));
+    let mut run = (samples == 0).then(|| {
+        let mut r = ChunkRun::new(ss, mode, &vec![0.0; ss.n()], 0);
+        r.keep = delay;
+        r
+    });
     let mut pending: Vec<Dataset> = Vec::new();
     let mut pending_rows = 0;
     let mut out = DMatrix::<f64>::zeros(0, ss.l());
     let mut sink_error: Option<DataError> = None;
     let mut step = |run: &mut ChunkRun<'a>, ds: &Dataset| -> Result<(), ()> {
-        let sig = sigs.evaluate(ds)?;
+        let (sig, fb, h) = sigs.evaluate(ds)?;
         let write = sink.is_some() && sink_error.is_none() && run.diverged_at.is_none();
         if write {
-            out.resize_mut(sig.len(), ss.l(), 0.0);
+            out.resize_mut(sig.len() - h, ss.l(), 0.0);
         }
-        run.update(&sig, write.then_some(&mut out));
+        run.update_after(&sig, &fb, h, write.then_some(&mut out));
         if let (true, None, Some(f)) = (write, run.diverged_at, sink.as_deref_mut()) {
             sink_error = f(ds, &out).err();
         }
@@ -633,6 +674,7 @@ fn run_file<'a>(
         let hf = model.signals.feedback(&head).map_err(|_| ())?;
         let x = estimate_x0(ss, &hs, &hf, samples);
         let mut r = ChunkRun::new(ss, mode, x.as_slice(), samples);
+        r.keep = delay;
         for ds in pending.drain(..) {
             step(&mut r, &ds)?;
         }
@@ -668,8 +710,8 @@ pub fn should_stream_data(path: &Path) -> bool {
 
 /// [`crate::simulate::score_from`] of `model` on the data file at `path`, read in chunks of
 /// [`CHUNK_ROWS`] rows (constant memory), with the number of rows; `None`: use the
-/// in-memory path (lpv-arx models, a free run through own-output feedback, a factor on the
-/// sample index, bad data: `run_streamable`, module docs).
+/// in-memory path (lpv-arx models, a factor on the sample index, bad data:
+/// `run_streamable`, module docs).
 pub fn score_streaming(
     model: &ModelFile,
     path: &Path,
@@ -736,7 +778,7 @@ pub fn simulate_streaming_chunks(
     out: &Path,
     chunk_rows: usize,
 ) -> Option<Result<Simulated, SimulateFailure>> {
-    run_streamable(model, mode, chunk_rows)?;
+    run_streamable(model, chunk_rows)?;
     // a destination that cannot be staged fails the in-memory path too, after its reading
     let mut writer = Some(stage_writer(out).ok()?);
     let mut names: Option<Vec<String>> = None;

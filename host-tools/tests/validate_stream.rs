@@ -9,7 +9,7 @@ use std::path::{Path, PathBuf};
 use lpvid_host::cli;
 use lpvid_host::data::Dataset;
 use lpvid_host::lpvss::Signals;
-use lpvid_host::model::{Factor, ModelFile, ModelKind, SignalMap};
+use lpvid_host::model::{Factor, FactorFn, ModelFile, ModelKind, SignalMap};
 use lpvid_host::pbsid::{fit, PbsidOptions};
 use lpvid_host::simulate::{run, score_from, Mode, Score, X0};
 use lpvid_host::stream::{
@@ -154,33 +154,73 @@ fn streamed_simulation_writes_the_in_memory_csv() {
 }
 
 #[test]
-fn what_the_stream_cannot_run_falls_back() {
+fn own_output_feedback_streams_and_the_sample_index_falls_back() {
     let dir = tempfile::tempdir().unwrap();
-    let data = systems::b1(300, 0.1, 9).val;
+    let data = systems::b1(600, 0.1, 9).val;
     let path = write_data(dir.path(), "d.csv", &data);
     let ds = Dataset::read_csv(&path).unwrap();
-    // own-output feedback: the free run falls back, the predictor (measured outputs) streams
-    let mut map = SignalMap::standard(2, 3, 3);
-    let mut f = Factor::col("y1");
-    f.delay = 1;
-    map.scheduling[3] = vec![f];
-    let model = b1_model(2, map);
-    assert!(score_streaming_chunks(&model, &path, Mode::FreeRun, X0::Zero, 50).is_none());
     let out = dir.path().join("o.csv");
-    assert!(simulate_streaming_chunks(&model, &path, Mode::FreeRun, X0::Zero, &out, 50).is_none());
-    for x0 in [X0::Zero, X0::Estimate { samples: 50 }] {
-        let mem = score_from(&model, &ds, Mode::Predictor, x0).unwrap();
-        let (st, _) = score_streaming_chunks(&model, &path, Mode::Predictor, x0, 50).unwrap();
-        assert!(score_diff(&mem, &st) <= 1e-12);
+    let mut finite = 0;
+    let mut worst: f64 = 0.0;
+    // a scheduling function and an input that read the model's own outputs, one and three
+    // samples back (more than a chunk of 1 or 2 rows)
+    for (seed, d1, d2) in [(2u64, 1, 3), (5, 3, 1), (8, 2, 2)] {
+        let mut map = SignalMap::standard(2, 3, 3);
+        // p3 cos(y1(k - d1)) and u2 cos(0.5 y2(k - d2)): bounded by the data's own values
+        let mut f = Factor::col("y1");
+        f.delay = d1;
+        f.func = Some(FactorFn::Cos);
+        map.scheduling[3] = vec![Factor::col("p3"), f];
+        let mut g = Factor::col("y2");
+        g.delay = d2;
+        g.func = Some(FactorFn::Cos);
+        g.omega = Some(0.5);
+        map.inputs[1].push(g);
+        let model = b1_model(seed, map);
+        for mode in [Mode::FreeRun, Mode::Predictor] {
+            for x0 in [X0::Zero, X0::Estimate { samples: 50 }] {
+                let mem = score_from(&model, &ds, mode, x0).unwrap();
+                finite += usize::from(mem.diverged_at.is_none());
+                let yhat = run(&model, &ds, mode, x0).unwrap().yhat;
+                for chunk in [1, 2, 37, 1000] {
+                    let (st, _) = score_streaming_chunks(&model, &path, mode, x0, chunk).unwrap();
+                    let d = score_diff(&mem, &st);
+                    assert!(
+                        d <= 1e-12,
+                        "seed {seed} {mode:?} {x0:?} chunk {chunk}: {d:e}"
+                    );
+                    worst = worst.max(d);
+                    let sim = simulate_streaming_chunks(&model, &path, mode, x0, &out, chunk);
+                    match sim.unwrap() {
+                        Ok(s) => {
+                            assert!(mem.diverged_at.is_none());
+                            s.staged.commit().unwrap();
+                            let got = Dataset::read_csv(&out).unwrap();
+                            for j in 0..3 {
+                                let col = got.column(&format!("yhat{}", j + 1)).unwrap();
+                                assert!(col.iter().zip(yhat.column(j).iter()).all(|(a, b)| a == b));
+                            }
+                        }
+                        Err(lpvid_host::stream::SimulateFailure::Diverged(k)) => {
+                            assert_eq!(Some(k), mem.diverged_at)
+                        }
+                        Err(e) => panic!("{e:?}"),
+                    }
+                }
+            }
+        }
     }
+    println!("feedback: {finite} of 12 runs finite, worst relative difference {worst:e}");
+    assert!(finite >= 9, "{finite}");
     // the sample index
     let mut map = SignalMap::standard(2, 3, 3);
     map.scheduling[3] = vec![Factor::col("k")];
     let model = b1_model(2, map);
     assert!(score_streaming_chunks(&model, &path, Mode::Predictor, X0::Zero, 50).is_none());
+    assert!(simulate_streaming_chunks(&model, &path, Mode::FreeRun, X0::Zero, &out, 50).is_none());
     // nothing was left behind
     let names: Vec<_> = std::fs::read_dir(dir.path()).unwrap().collect();
-    assert_eq!(names.len(), 1);
+    assert_eq!(names.len(), 2);
 }
 
 #[test]
