@@ -624,8 +624,9 @@ struct FileRun<'a> {
 /// `model` run over the file at `path` in chunks of `chunk_rows` rows from the initial state
 /// `x0`: with [`X0::Estimate`] the chunks are held until the first `samples` rows are read,
 /// the state is estimated from them by [`estimate_x0`] (the in-memory run's function, on
-/// the same rows) and the run starts. `None`: the in-memory path decides (a model
-/// `run_streamable` refuses, anything the chunked reading gives up on, bad data).
+/// the same rows) and the run starts (so the memory is a chunk and those rows). `None`: the
+/// in-memory path decides (a model `run_streamable` refuses, anything the chunked reading
+/// gives up on, bad data).
 fn run_file<'a>(
     model: &'a ModelFile,
     path: &Path,
