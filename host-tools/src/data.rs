@@ -509,6 +509,12 @@ impl Dataset {
 
     /// The CSV text [`Dataset::write_csv`] writes (`path` names the file in errors).
     pub fn to_csv_bytes(&self, path: &Path) -> Result<Vec<u8>, DataError> {
+        self.csv_bytes(path, true)
+    }
+
+    /// [`Dataset::to_csv_bytes`] with or without the header line: the rows of a file
+    /// written in chunks (`lpvid simulate` on a large file), the header with the first.
+    pub fn csv_bytes(&self, path: &Path, header: bool) -> Result<Vec<u8>, DataError> {
         let file = path.display().to_string();
         if self.cols.len() != self.names.len() || self.cols.iter().any(|c| c.len() != self.len()) {
             return Err(DataError::new(
@@ -530,7 +536,9 @@ impl Dataset {
         }
         let mut w = csv::WriterBuilder::new().from_writer(Vec::new());
         let io = |e: csv::Error| DataError::new(&file, None, None, format!("cannot write: {e}"));
-        w.write_record(&self.names).map_err(io)?;
+        if header {
+            w.write_record(&self.names).map_err(io)?;
+        }
         let mut row = Vec::with_capacity(self.names.len());
         for k in 0..self.len() {
             row.clear();
@@ -794,10 +802,26 @@ pub fn check_destination(path: &Path) -> Result<(), DataError> {
 /// Prepare writing `bytes` to `path` (see [`StagedWrite`]): a regular destination gets its
 /// complete temporary file now (synced), so a later [`StagedWrite::commit`] is a rename.
 pub fn stage_write(path: &Path, bytes: &[u8]) -> Result<StagedWrite, DataError> {
+    let mut w = stage_writer(path)?;
+    w.write(bytes)?;
+    w.finish()
+}
+
+/// A [`StagedWrite`] being written piece by piece ([`stage_writer`]): what a command that
+/// streams its output (`lpvid simulate` on a large file) writes through, so the temporary
+/// file, not the output, grows; dropping it unfinished removes the temporary file.
+#[derive(Debug)]
+pub struct StagedWriter {
+    // dropped first: flushed before the staged write removes the temporary file
+    file: Option<std::io::BufWriter<fs::File>>,
+    staged: StagedWrite,
+}
+
+/// Start a [`StagedWrite`] to `path` written in pieces ([`StagedWriter::write`], then
+/// [`StagedWriter::finish`]): the temporary file is created now; a write-through destination
+/// (a device, a FIFO) collects the bytes and gets them at commit, as [`stage_write`] does.
+pub fn stage_writer(path: &Path) -> Result<StagedWriter, DataError> {
     let shown = path.display().to_string();
-    let fail = |what: &str, e: std::io::Error| {
-        DataError::new(&shown, None, None, format!("cannot write ({what}): {e}"))
-    };
     if path.file_name().is_none() {
         return Err(DataError::new(
             &shown,
@@ -808,26 +832,64 @@ pub fn stage_write(path: &Path, bytes: &[u8]) -> Result<StagedWrite, DataError> 
     }
     let (target, through) = resolve_destination(path);
     if through {
-        return Ok(StagedWrite {
-            shown: shown.clone(),
-            target,
-            kind: Staged::Through(bytes.to_vec()),
+        return Ok(StagedWriter {
+            staged: StagedWrite {
+                shown,
+                target,
+                kind: Staged::Through(Vec::new()),
+            },
+            file: None,
         });
     }
     let tmp = temp_path(&target)
         .ok_or_else(|| DataError::new(&shown, None, None, "cannot write: not a file name"))?;
     let staged = StagedWrite {
-        shown: shown.clone(),
+        shown,
         target,
         kind: Staged::Temp(Some(tmp.clone())),
     };
-    let mut f = fs::File::create(&tmp).map_err(|e| fail("create temporary file", e))?;
-    f.write_all(bytes).map_err(|e| fail("write", e))?;
-    f.sync_all().map_err(|e| fail("sync", e))?;
-    Ok(staged)
+    let f = fs::File::create(&tmp).map_err(|e| staged.fail("create temporary file", e))?;
+    Ok(StagedWriter {
+        staged,
+        file: Some(std::io::BufWriter::with_capacity(1 << 16, f)),
+    })
+}
+
+impl StagedWriter {
+    /// Append `bytes`.
+    pub fn write(&mut self, bytes: &[u8]) -> Result<(), DataError> {
+        match (&mut self.file, &mut self.staged.kind) {
+            (Some(f), _) => f.write_all(bytes).map_err(|e| self.staged.fail("write", e)),
+            (None, Staged::Through(buf)) => {
+                buf.extend_from_slice(bytes);
+                Ok(())
+            }
+            (None, Staged::Temp(_)) => Ok(()),
+        }
+    }
+
+    /// The complete staged write (the temporary file flushed and synced).
+    pub fn finish(mut self) -> Result<StagedWrite, DataError> {
+        if let Some(f) = self.file.take() {
+            let f = f
+                .into_inner()
+                .map_err(|e| self.staged.fail("write", e.into_error()))?;
+            f.sync_all().map_err(|e| self.staged.fail("sync", e))?;
+        }
+        Ok(self.staged)
+    }
 }
 
 impl StagedWrite {
+    fn fail(&self, what: &str, e: std::io::Error) -> DataError {
+        DataError::new(
+            &self.shown,
+            None,
+            None,
+            format!("cannot write ({what}): {e}"),
+        )
+    }
+
     /// The destination as the caller gave it.
     pub fn path(&self) -> &str {
         &self.shown

@@ -232,22 +232,39 @@ pub fn free_run_ss(
     x0: &DVector<f64>,
     upto: usize,
 ) -> DMatrix<f64> {
+    let mut out = DMatrix::<f64>::zeros(sig.len(), m.l());
+    let mut x: Vec<f64> = x0.iter().copied().collect();
+    free_run_ss_into(m, sig, fb, &mut x, 0, upto, &mut out);
+    out
+}
+
+/// [`free_run_ss`] over samples `start..upto` into `out` (N x l), whose rows before `start`
+/// hold the outputs already run (what the feedback reads of them), from the state `x`, left
+/// in `x` at the end: the streamed free run ([`crate::stream`]) continues a record chunk by
+/// chunk with it. False when the run diverged (the rest of `out` is NaN).
+pub fn free_run_ss_into(
+    m: &LpvSs,
+    sig: &Signals,
+    fb: &Feedback,
+    x: &mut Vec<f64>,
+    start: usize,
+    upto: usize,
+    out: &mut DMatrix<f64>,
+) -> bool {
     let big_n = sig.len();
     let (n, r, l, mm) = (m.n(), m.r(), m.l(), m.m());
     let s = sig.p.ncols();
     let mut u = sig.u.clone();
     let mut p = sig.p.clone();
-    let mut out = DMatrix::<f64>::zeros(big_n, l);
-    let mut x: Vec<f64> = x0.iter().copied().collect();
     let mut xn = vec![0.0; n];
     let mut uk = vec![0.0; r];
     let mut yk = vec![0.0; l];
     let mut mu = vec![1.0; mm];
-    for k in 0..upto.min(big_n) {
+    for k in start..upto.min(big_n) {
         // the signals that read outputs up to k-1 (a delay-0 own value counts as 0 here: the
         // output equation does not use it, SignalMap::check_loops)
         if !fb.is_empty() {
-            fb.fill(k, &out, k, &mut u, &mut p);
+            fb.fill(k, out, k, &mut u, &mut p);
         }
         for q in 0..s.min(mm - 1) {
             mu[q + 1] = p[(k, q)];
@@ -255,14 +272,14 @@ pub fn free_run_ss(
         for (j, v) in uk.iter_mut().enumerate() {
             *v = u[(k, j)];
         }
-        m.output_into(&mu, &x, &uk, &mut yk);
+        m.output_into(&mu, x, &uk, &mut yk);
         let finite = yk.iter().all(|v| v.is_finite());
         for (j, v) in yk.iter().enumerate() {
             out[(k, j)] = *v;
         }
         // ... then with y_k known
         if !fb.is_empty() {
-            fb.fill(k, &out, k + 1, &mut u, &mut p);
+            fb.fill(k, out, k + 1, &mut u, &mut p);
             for q in 0..s.min(mm - 1) {
                 mu[q + 1] = p[(k, q)];
             }
@@ -270,18 +287,18 @@ pub fn free_run_ss(
                 *v = u[(k, j)];
             }
         }
-        m.state_into(&mu, &x, &uk, None, &mut xn);
-        std::mem::swap(&mut x, &mut xn);
+        m.state_into(&mu, x, &uk, None, &mut xn);
+        std::mem::swap(x, &mut xn);
         if !finite || x.iter().any(|v| !v.is_finite() || v.abs() > 1e150) {
             for kk in k + 1..big_n {
                 for j in 0..l {
                     out[(kk, j)] = f64::NAN;
                 }
             }
-            break;
+            return false;
         }
     }
-    out
+    true
 }
 
 fn mu_of(p: &DMatrix<f64>, k: usize) -> DVector<f64> {

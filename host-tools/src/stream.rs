@@ -1,15 +1,31 @@
-//! `lpvid pbsid` in constant memory: the training file read in chunks of rows, each chunk
-//! parsed by the same CSV parser as a whole file ([`Dataset::parse`], header prepended) and
-//! fed to the streamed primal fit ([`crate::pbsid::stream`]: pass 1 statistics, pass 2
-//! realization), then a third pass scores the model by free-run simulation (the same
-//! recursion as [`crate::lpvss::LpvSs::simulate`], the state carried across chunks).
+//! Constant memory on large files: the file read in chunks of rows, each chunk parsed by the
+//! same CSV parser as a whole file ([`Dataset::parse`], header prepended).
 //!
-//! Nothing here reports an error of its own: anything the streamed path does not handle —
-//! options that need the data (the kernel form, BPDN, `--refine`, `--observer hinf`), a pipe,
-//! a file whose lines the chunking cannot split safely (blank or over-long lines, a quote),
-//! bad data anywhere, a fit that fails — returns `None`, and the caller runs the in-memory
-//! [`crate::pipeline::identify`], which gives the canonical error with its file, line and
-//! column. A streamed run writes nothing; the caller writes the model only on success.
+//! - `lpvid pbsid`: the chunks feed the streamed primal fit ([`crate::pbsid::stream`]: pass 1
+//!   statistics, pass 2 realization), then a third pass scores the model by free-run
+//!   simulation, the state carried across chunks.
+//! - `lpvid validate` ([`score_streaming`]) and `lpvid simulate` ([`simulate_streaming`]): an
+//!   lpv-ss model run over the chunks in free run or one-step prediction, from the zero
+//!   state or from one estimated on the first samples ([`crate::simulate::estimate_x0`] on
+//!   the rows held until there are enough), scored from running sums; `simulate` writes
+//!   each chunk's rows into the staged output ([`crate::data::stage_writer`]). Delayed
+//!   factors of the signal map read the rows kept from the chunk before, and a free run
+//!   through own-output feedback the outputs kept from it
+//!   ([`crate::simulate::free_run_ss_into`], the in-memory run's loop). Left to the
+//!   in-memory path: lpv-arx models and factors on the sample index (`run_streamable`).
+//!
+//! All of them run the one simulation step ([`crate::lpvss::LpvSs::output_into`] and
+//! [`crate::lpvss::LpvSs::state_into`], struct `ChunkRun`), so the outputs equal the
+//! in-memory ones to the bit and the scores to rounding (Welford sums against two-pass).
+//!
+//! Nothing here reports a data error of its own: anything the streamed path does not handle
+//! — options that need the data (the kernel form, BPDN, `--refine`, `--observer hinf`), a
+//! model as above, a pipe, a file whose lines the chunking cannot split safely (blank or
+//! over-long lines, a quote), bad data anywhere, a fit that fails — returns `None`, and the
+//! caller runs the in-memory path ([`crate::pipeline::identify`],
+//! [`crate::simulate::score_from`], [`crate::simulate::run`]), which gives the canonical
+//! error with its file, line and column. A streamed run changes no file: `pbsid` writes the
+//! model only on success, `simulate` commits its staged output only on success.
 
 use std::fs::File;
 use std::io::{BufRead, BufReader};
@@ -17,13 +33,15 @@ use std::path::Path;
 
 use serde_json::json;
 
-use crate::data::{Dataset, MAX_LINE_BYTES};
+use nalgebra::DMatrix;
+
+use crate::data::{stage_writer, DataError, Dataset, StagedWrite, MAX_LINE_BYTES};
 use crate::lpvss::{LpvSs, Signals};
-use crate::model::{describe, ModelFile, ModelKind, SignalMap};
+use crate::model::{describe, Feedback, ModelFile, ModelKind, SignalMap, SAMPLE_INDEX};
 use crate::observer;
 use crate::pbsid::stream::{streamable, PassOne};
 use crate::pipeline::{pbsid_fit_record, pbsid_warnings, Identified, PbsidSettings};
-use crate::simulate::{Score, DIVERGED};
+use crate::simulate::{estimate_x0, free_run_ss_into, Mode, Score, DIVERGED, X0};
 
 /// Rows per chunk: the memory of the streamed path is a few chunks, whatever the file.
 pub const CHUNK_ROWS: usize = 8192;
@@ -34,8 +52,7 @@ pub const STREAM_MIN_BYTES: u64 = 4 << 20;
 
 /// Whether `lpvid pbsid` streams this training file with these settings.
 pub fn should_stream(path: &Path, settings: &PbsidSettings) -> bool {
-    let big = std::fs::metadata(path).is_ok_and(|m| m.is_file() && m.len() >= STREAM_MIN_BYTES);
-    big && !settings.observer.hinf && streamable(&settings.fit).is_ok()
+    should_stream_data(path) && !settings.observer.hinf && streamable(&settings.fit).is_ok()
 }
 
 /// The file's rows in chunks, each a [`Dataset`] parsed by [`Dataset::parse`] with the
@@ -173,17 +190,25 @@ fn for_each_chunk(
     Some((chunks.rows, chunks.fingerprint()))
 }
 
-/// Free-run simulation from x0 = 0 carried across chunks, and the scores of
-/// [`crate::simulate::score`] from running sums (VAF and BFR per output).
-struct FreeRun<'a> {
+/// A state-space model run over a record in chunks, the state carried from one chunk to the
+/// next: the free run or the one-step predictor from an initial state x0, and the scores of
+/// [`crate::simulate::score_from`] from running sums (VAF and BFR per output over the
+/// samples after the first `skip`). The step is the shared allocation-free one
+/// ([`LpvSs::output_into`], [`LpvSs::state_into`]), as in [`LpvSs::run_from`], so the
+/// outputs are those of the in-memory run to the bit.
+struct ChunkRun<'a> {
     model: &'a LpvSs,
-    /// The state, its successor, mu_k and u_k, y_k: the step's whole memory
-    /// ([`LpvSs::output_into`], [`LpvSs::state_into`]).
+    predictor: bool,
+    /// Leading samples not scored (used for the initial state).
+    skip: usize,
+    /// The state, its successor, mu_k and u_k, y_k and the innovation y_k - yhat_k: the
+    /// step's whole memory.
     x: Vec<f64>,
     xn: Vec<f64>,
     mu: Vec<f64>,
     u: Vec<f64>,
     yk: Vec<f64>,
+    ek: Vec<f64>,
     k: usize,
     stopped: bool,
     diverged_at: Option<usize>,
@@ -191,41 +216,83 @@ struct FreeRun<'a> {
     y: Vec<(f64, f64)>,
     err: Vec<(f64, f64)>,
     sse: Vec<f64>,
+    /// The free run through own-output feedback: its last outputs (at most `keep` rows),
+    /// which the delayed factors of the next chunk read.
+    kept: DMatrix<f64>,
+    keep: usize,
 }
 
-impl<'a> FreeRun<'a> {
-    fn new(model: &'a LpvSs) -> FreeRun<'a> {
+impl<'a> ChunkRun<'a> {
+    fn new(model: &'a LpvSs, mode: Mode, x0: &[f64], skip: usize) -> ChunkRun<'a> {
         let l = model.l();
         let mut mu = vec![0.0; model.m()];
         mu[0] = 1.0;
-        FreeRun {
+        ChunkRun {
             model,
-            x: vec![0.0; model.n()],
+            predictor: mode == Mode::Predictor,
+            skip,
+            x: x0.to_vec(),
             xn: vec![0.0; model.n()],
             mu,
             u: vec![0.0; model.r()],
             yk: vec![0.0; l],
+            ek: vec![0.0; l],
             k: 0,
             stopped: false,
             diverged_at: None,
             y: vec![(0.0, 0.0); l],
             err: vec![(0.0, 0.0); l],
             sse: vec![0.0; l],
+            kept: DMatrix::zeros(0, l),
+            keep: 0,
         }
     }
 
-    fn update(&mut self, sig: &Signals) {
+    /// The next samples; their model outputs into `out` (rows as `sig`, l columns) if given.
+    fn update(&mut self, sig: &Signals, out: Option<&mut DMatrix<f64>>) {
+        self.update_after(sig, &Feedback::default(), 0, out);
+    }
+
+    /// [`ChunkRun::update`] on the rows of `sig` from `h` on (the rows before are the
+    /// end of the chunk before, which the delayed factors and the feedback `fb` read): in
+    /// the free run through own-output feedback the samples are run by
+    /// [`free_run_ss_into`] from the outputs kept of the chunk before, else by the step here.
+    fn update_after(
+        &mut self,
+        sig: &Signals,
+        fb: &Feedback,
+        h: usize,
+        mut out: Option<&mut DMatrix<f64>>,
+    ) {
         let m = self.model;
+        let (n, l) = (sig.len(), m.l());
+        let feedback = !self.predictor && !fb.is_empty();
+        // the free run through the feedback: the outputs of the chunk before, then these
+        let mut run = DMatrix::<f64>::zeros(if feedback { n } else { 0 }, l);
+        if feedback {
+            let kept = self.kept.nrows();
+            for i in 0..h.min(kept) {
+                run.set_row(h - 1 - i, &self.kept.row(kept - 1 - i));
+            }
+            if self.stopped {
+                run.rows_mut(h, n - h).fill(f64::NAN);
+            } else if !free_run_ss_into(m, sig, fb, &mut self.x, h, n, &mut run) {
+                self.stopped = true;
+            }
+        }
         let s = sig.p.ncols().min(m.m() - 1);
-        for k in 0..sig.len() {
-            let n = (self.k + 1) as f64;
+        for k in h..n {
             for q in 0..s {
                 self.mu[q + 1] = sig.p[(k, q)];
             }
             for (j, v) in self.u.iter_mut().enumerate() {
                 *v = sig.u[(k, j)];
             }
-            if self.stopped {
+            if feedback {
+                for (j, v) in self.yk.iter_mut().enumerate() {
+                    *v = run[(k, j)];
+                }
+            } else if self.stopped {
                 self.yk.iter_mut().for_each(|v| *v = f64::NAN);
             } else {
                 m.output_into(&self.mu, &self.x, &self.u, &mut self.yk);
@@ -235,15 +302,25 @@ impl<'a> FreeRun<'a> {
             {
                 self.diverged_at = Some(self.k);
             }
-            for j in 0..m.l() {
+            if let Some(o) = out.as_deref_mut() {
+                for (j, v) in self.yk.iter().enumerate() {
+                    o[(k - h, j)] = *v;
+                }
+            }
+            let count = (self.k + 1).saturating_sub(self.skip) as f64;
+            for j in 0..l {
                 let yv = sig.y[(k, j)];
                 let e = yv - self.yk[j];
-                welford(&mut self.y[j], yv, n);
-                welford(&mut self.err[j], e, n);
-                self.sse[j] += e * e;
+                self.ek[j] = e;
+                if self.k >= self.skip {
+                    welford(&mut self.y[j], yv, count);
+                    welford(&mut self.err[j], e, count);
+                    self.sse[j] += e * e;
+                }
             }
-            if !self.stopped {
-                m.state_into(&self.mu, &self.x, &self.u, None, &mut self.xn);
+            if !self.stopped && !feedback {
+                let innovation = self.predictor.then_some(&self.ek[..]);
+                m.state_into(&self.mu, &self.x, &self.u, innovation, &mut self.xn);
                 std::mem::swap(&mut self.x, &mut self.xn);
                 if self.x.iter().any(|v| !v.is_finite() || v.abs() > 1e150) {
                     self.stopped = true;
@@ -251,10 +328,16 @@ impl<'a> FreeRun<'a> {
             }
             self.k += 1;
         }
+        if feedback {
+            // the outputs the next chunk's delayed feedback reads
+            let keep = self.keep.min(n);
+            self.kept = run.rows(n - keep, keep).into_owned();
+        }
     }
 
     fn score(&self, file: &str) -> Score {
-        let n = self.k as f64;
+        let skipped = self.skip.min(self.k);
+        let n = (self.k - skipped) as f64;
         let mut vaf = Vec::new();
         let mut bfr = Vec::new();
         for j in 0..self.y.len() {
@@ -274,12 +357,16 @@ impl<'a> FreeRun<'a> {
         }
         Score {
             file: file.to_string(),
-            mode: "free-run",
+            mode: if self.predictor {
+                "predictor"
+            } else {
+                "free-run"
+            },
             vaf_mean: crate::metrics::mean(&vaf),
             bfr_mean: crate::metrics::mean(&bfr),
             vaf,
             bfr,
-            skipped: 0,
+            skipped,
             diverged_at: self.diverged_at,
         }
     }
@@ -407,12 +494,12 @@ pub fn identify_streaming_chunks(
     let ModelKind::Ss(ss) = &model.kind else {
         return None;
     };
-    let mut run = FreeRun::new(ss);
+    let mut run = ChunkRun::new(ss, Mode::FreeRun, &vec![0.0; ss.n()], 0);
     let mut dims = (0, 0, 0);
     for_each_chunk(path, chunk_rows, |ds| {
         let sig = model.signals.evaluate(ds).map_err(|_| ())?;
         dims = (sig.u.ncols(), sig.y.ncols(), sig.p.ncols());
-        run.update(&sig);
+        run.update(&sig, None);
         Ok(())
     })?;
     let train_score = run.score(&path.display().to_string());
@@ -433,6 +520,313 @@ pub fn identify_streaming_chunks(
     })
 }
 
+/// Why the streamed validate/simulate hands a model to the in-memory path, if it does:
+/// an lpv-arx model (its recursion, [`crate::simulate::arx_run_from`], reads the whole
+/// record); a factor on the sample index `k`; a delay longer than [`CHUNK_ROWS`] (the rows
+/// kept for it) and the chunk.
+/// Otherwise the model and the longest delay of its signal map.
+fn run_streamable(model: &ModelFile, chunk_rows: usize) -> Option<(&LpvSs, usize)> {
+    let ModelKind::Ss(ss) = &model.kind else {
+        return None;
+    };
+    let map = &model.signals;
+    let mut delay = 0;
+    for f in map
+        .inputs
+        .iter()
+        .chain(&map.scheduling)
+        .chain(&map.outputs)
+        .flatten()
+    {
+        if f.col == SAMPLE_INDEX {
+            return None;
+        }
+        delay = delay.max(f.delay);
+    }
+    (delay <= chunk_rows.max(CHUNK_ROWS)).then_some((ss, delay))
+}
+
+/// A model's signals chunk by chunk: each chunk evaluated by [`SignalMap::evaluate`] after
+/// the last `delay` rows before it, so a delayed factor reads what it reads in the whole
+/// record; the own-output feedback ([`SignalMap::feedback`]) on the same rows (empty when
+/// the map has none; its errors fall back as the in-memory run would give them).
+struct ChunkSignals<'a> {
+    map: &'a SignalMap,
+    delay: usize,
+    history: Option<Dataset>,
+}
+
+impl ChunkSignals<'_> {
+    /// The signals and the feedback of the rows kept and this chunk, and how many rows
+    /// were kept (the chunk's rows are those after them).
+    fn evaluate(&mut self, ds: &Dataset) -> Result<(Signals, Feedback, usize), ()> {
+        let joined;
+        let (src, h) = match self.history.take() {
+            Some(mut prev) if self.delay > 0 => {
+                let h = prev.len();
+                for (c, add) in prev.cols.iter_mut().zip(&ds.cols) {
+                    c.extend_from_slice(add);
+                }
+                joined = prev;
+                (&joined, h)
+            }
+            _ => (ds, 0),
+        };
+        if src.names != ds.names {
+            return Err(());
+        }
+        let sig = self.map.evaluate(src).map_err(|_| ())?;
+        let fb = self.map.feedback(src).map_err(|_| ())?;
+        if self.delay > 0 {
+            let keep = self.delay.min(src.len());
+            self.history = Some(Dataset {
+                source: src.source.clone(),
+                names: src.names.clone(),
+                cols: src
+                    .cols
+                    .iter()
+                    .map(|c| c[c.len() - keep..].to_vec())
+                    .collect(),
+            });
+        }
+        Ok((sig, fb, h))
+    }
+}
+
+/// The rows of `chunks` (same columns) as one data set, the first `rows` only.
+fn head_of(chunks: &[Dataset], rows: usize) -> Option<Dataset> {
+    let first = chunks.first()?;
+    let mut head = Dataset {
+        source: first.source.clone(),
+        names: first.names.clone(),
+        cols: vec![Vec::new(); first.cols.len()],
+    };
+    for ds in chunks {
+        for (c, add) in head.cols.iter_mut().zip(&ds.cols) {
+            let take = rows.saturating_sub(c.len()).min(add.len());
+            c.extend_from_slice(&add[..take]);
+        }
+    }
+    Some(head)
+}
+
+/// The chunks' model outputs go here (chunk rows, their outputs); an error stops the calls.
+type Sink<'s> = &'s mut dyn FnMut(&Dataset, &DMatrix<f64>) -> Result<(), DataError>;
+
+/// A streamed run over a file: the run (its score), the rows read, and the first error of
+/// the sink (not called after it, nor from the sample where the run diverged).
+struct FileRun<'a> {
+    run: ChunkRun<'a>,
+    rows: usize,
+    sink_error: Option<DataError>,
+}
+
+/// `model` run over the file at `path` in chunks of `chunk_rows` rows from the initial state
+/// `x0`: with [`X0::Estimate`] the chunks are held until the first `samples` rows are read,
+/// the state is estimated from them by [`estimate_x0`] (the in-memory run's function, on
+/// the same rows) and the run starts (so the memory is a chunk and those rows). `None`: the
+/// in-memory path decides (a model `run_streamable` refuses, anything the chunked reading
+/// gives up on, bad data).
+fn run_file<'a>(
+    model: &'a ModelFile,
+    path: &Path,
+    mode: Mode,
+    x0: X0,
+    chunk_rows: usize,
+    mut sink: Option<Sink<'_>>,
+) -> Option<FileRun<'a>> {
+    let (ss, delay) = run_streamable(model, chunk_rows)?;
+    let samples = match x0 {
+        X0::Zero => 0,
+        X0::Estimate { samples } => samples,
+    };
+    let mut sigs = ChunkSignals {
+        map: &model.signals,
+        delay,
+        history: None,
+    };
+    let mut run = (samples == 0).then(|| {
+        let mut r = ChunkRun::new(ss, mode, &vec![0.0; ss.n()], 0);
+        r.keep = delay;
+        r
+    });
+    let mut pending: Vec<Dataset> = Vec::new();
+    let mut pending_rows = 0;
+    let mut out = DMatrix::<f64>::zeros(0, ss.l());
+    let mut sink_error: Option<DataError> = None;
+    let mut step = |run: &mut ChunkRun<'a>, ds: &Dataset| -> Result<(), ()> {
+        let (sig, fb, h) = sigs.evaluate(ds)?;
+        let write = sink.is_some() && sink_error.is_none() && run.diverged_at.is_none();
+        if write {
+            out.resize_mut(sig.len() - h, ss.l(), 0.0);
+        }
+        run.update_after(&sig, &fb, h, write.then_some(&mut out));
+        if let (true, None, Some(f)) = (write, run.diverged_at, sink.as_deref_mut()) {
+            sink_error = f(ds, &out).err();
+        }
+        Ok(())
+    };
+    // the initial state from the held rows, then those rows through the run
+    let start = |pending: &mut Vec<Dataset>,
+                 step: &mut dyn FnMut(&mut ChunkRun<'a>, &Dataset) -> Result<(), ()>|
+     -> Result<ChunkRun<'a>, ()> {
+        let head = head_of(pending, samples).ok_or(())?;
+        let hs = model.signals.evaluate(&head).map_err(|_| ())?;
+        let hf = model.signals.feedback(&head).map_err(|_| ())?;
+        let x = estimate_x0(ss, &hs, &hf, samples);
+        let mut r = ChunkRun::new(ss, mode, x.as_slice(), samples);
+        r.keep = delay;
+        for ds in pending.drain(..) {
+            step(&mut r, &ds)?;
+        }
+        Ok(r)
+    };
+    let (rows, _) = for_each_chunk(path, chunk_rows, |ds| {
+        if let Some(r) = run.as_mut() {
+            return step(r, ds);
+        }
+        pending.push(ds.clone());
+        pending_rows += ds.len();
+        if pending_rows >= samples {
+            run = Some(start(&mut pending, &mut step)?);
+        }
+        Ok(())
+    })?;
+    let run = match run {
+        Some(r) => r,
+        None => start(&mut pending, &mut step).ok()?,
+    };
+    Some(FileRun {
+        run,
+        rows,
+        sink_error,
+    })
+}
+
+/// Whether `lpvid validate`/`simulate` read this data file in chunks: a regular file of at
+/// least [`STREAM_MIN_BYTES`] (the model decides the rest: [`score_streaming`]).
+pub fn should_stream_data(path: &Path) -> bool {
+    std::fs::metadata(path).is_ok_and(|m| m.is_file() && m.len() >= STREAM_MIN_BYTES)
+}
+
+/// [`crate::simulate::score_from`] of `model` on the data file at `path`, read in chunks of
+/// [`CHUNK_ROWS`] rows (constant memory), with the number of rows; `None`: use the
+/// in-memory path (lpv-arx models, a factor on the sample index, bad data:
+/// `run_streamable`, module docs).
+pub fn score_streaming(
+    model: &ModelFile,
+    path: &Path,
+    mode: Mode,
+    x0: X0,
+) -> Option<(Score, usize)> {
+    score_streaming_chunks(model, path, mode, x0, CHUNK_ROWS)
+}
+
+/// [`score_streaming`] with chunks of `chunk_rows` rows.
+pub fn score_streaming_chunks(
+    model: &ModelFile,
+    path: &Path,
+    mode: Mode,
+    x0: X0,
+    chunk_rows: usize,
+) -> Option<(Score, usize)> {
+    let f = run_file(model, path, mode, x0, chunk_rows, None)?;
+    Some((f.run.score(&path.display().to_string()), f.rows))
+}
+
+/// A streamed `lpvid simulate` output, staged, not yet in place.
+#[derive(Debug)]
+pub struct Simulated {
+    /// The output file, complete in its temporary file ([`crate::data::StagedWrite::commit`]).
+    pub staged: StagedWrite,
+    /// Rows written.
+    pub rows: usize,
+    /// Simulated output columns.
+    pub outputs: usize,
+}
+
+/// Why a streamed `lpvid simulate` wrote nothing, when the data were read to the end.
+#[derive(Debug)]
+pub enum SimulateFailure {
+    /// The model's output is not finite or beyond [`DIVERGED`] from this sample (0-based).
+    Diverged(usize),
+    /// Writing the output failed.
+    Write(DataError),
+}
+
+/// The model's outputs on the data file at `path` ([`crate::simulate::run`]): the data
+/// columns plus `yhat1..` (a name taken by the data gets `_` appended), written chunk by
+/// chunk into a staged output ([`crate::data::stage_writer`]) for `out`, the same bytes as
+/// the in-memory [`Dataset::to_csv_bytes`]. `None`: use the in-memory path (as
+/// [`score_streaming`]); the data are read to the end before a divergence or a write
+/// failure is reported, so a bad row anywhere falls back and gets its canonical error.
+pub fn simulate_streaming(
+    model: &ModelFile,
+    path: &Path,
+    mode: Mode,
+    x0: X0,
+    out: &Path,
+) -> Option<Result<Simulated, SimulateFailure>> {
+    simulate_streaming_chunks(model, path, mode, x0, out, CHUNK_ROWS)
+}
+
+/// [`simulate_streaming`] with chunks of `chunk_rows` rows.
+pub fn simulate_streaming_chunks(
+    model: &ModelFile,
+    path: &Path,
+    mode: Mode,
+    x0: X0,
+    out: &Path,
+    chunk_rows: usize,
+) -> Option<Result<Simulated, SimulateFailure>> {
+    run_streamable(model, chunk_rows)?;
+    // a destination that cannot be staged fails the in-memory path too, after its reading
+    let mut writer = Some(stage_writer(out).ok()?);
+    let mut names: Option<Vec<String>> = None;
+    let mut sink = |ds: &Dataset, yhat: &DMatrix<f64>| -> Result<(), DataError> {
+        let header = names.is_none();
+        let names = names.get_or_insert_with(|| {
+            let mut all = ds.names.clone();
+            for j in 0..yhat.ncols() {
+                let mut name = format!("yhat{}", j + 1);
+                while all.contains(&name) {
+                    name.push('_');
+                }
+                all.push(name);
+            }
+            all
+        });
+        let mut cols = ds.cols.clone();
+        cols.extend((0..yhat.ncols()).map(|j| yhat.column(j).iter().copied().collect()));
+        let chunk = Dataset {
+            source: ds.source.clone(),
+            names: names.clone(),
+            cols,
+        };
+        let bytes = chunk.csv_bytes(out, header)?;
+        writer
+            .as_mut()
+            .ok_or_else(|| DataError::new(out.display().to_string(), None, None, "cannot write"))?
+            .write(&bytes)
+    };
+    let f = run_file(model, path, mode, x0, chunk_rows, Some(&mut sink))?;
+    if let Some(k) = f.run.diverged_at {
+        return Some(Err(SimulateFailure::Diverged(k)));
+    }
+    if let Some(e) = f.sink_error {
+        return Some(Err(SimulateFailure::Write(e)));
+    }
+    let staged = match writer.take()?.finish() {
+        Ok(s) => s,
+        Err(e) => return Some(Err(SimulateFailure::Write(e))),
+    };
+    Some(Ok(Simulated {
+        staged,
+        rows: f.rows,
+        outputs: model.signals.outputs.len(),
+    }))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -441,9 +835,9 @@ mod tests {
     fn free_run_scores_equal_the_whole_record_ones() {
         let m = crate::systems::b1_truth();
         let exp = crate::systems::b1(700, 0.05, 5);
-        let mut run = FreeRun::new(&m);
+        let mut run = ChunkRun::new(&m, Mode::FreeRun, &[0.0; 4], 0);
         for k in (0..700).step_by(64) {
-            run.update(&exp.train.slice(k, 64.min(700 - k)));
+            run.update(&exp.train.slice(k, 64.min(700 - k)), None);
         }
         let s = run.score("t");
         let yhat = m.simulate(&exp.train, None);

@@ -106,6 +106,11 @@ impl Outputs {
         Ok(())
     }
 
+    /// Add a write already staged (a file written in pieces, [`crate::data::stage_writer`]).
+    pub(super) fn staged(&mut self, s: StagedWrite) {
+        self.staged.push(s);
+    }
+
     /// Stage figures into `dir` (created now if needed).
     pub(super) fn figures(
         &mut self,

@@ -1,7 +1,9 @@
 //! `lpvid validate` (VAF and BFR per output) and `lpvid simulate` (a model's outputs as CSV).
+//! A data file of at least [`crate::stream::STREAM_MIN_BYTES`] is read in chunks (constant
+//! memory, [`crate::stream`]) when the model allows; the same output either way.
 
 use std::io::Write;
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
 use clap::Args;
 use serde_json::json;
@@ -11,6 +13,7 @@ use super::files::{check_paths, Outputs};
 use super::{print_json, CliError};
 use crate::data::Dataset;
 use crate::simulate::{diverged_at, run, score_from, Mode, X0, X0_SAMPLES};
+use crate::stream::{score_streaming, should_stream_data, simulate_streaming, SimulateFailure};
 
 /// The initial state of a run.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
@@ -87,9 +90,20 @@ pub struct SimulateArgs {
 /// Run `lpvid validate`.
 pub(super) fn run_validate(a: &ValidateArgs, out: &mut dyn Write) -> Result<(), CliError> {
     let model = read_model(&a.run.model)?;
-    let ds = Dataset::read_csv(&a.run.data)?;
     let mode = a.run.mode();
-    let sc = score_from(&model, &ds, mode, a.run.x0())?;
+    // a large file in chunks (constant memory), when the model allows; the same score
+    let streamed = if should_stream_data(&a.run.data) {
+        score_streaming(&model, &a.run.data, mode, a.run.x0())
+    } else {
+        None
+    };
+    let (sc, rows) = match streamed {
+        Some(s) => s,
+        None => {
+            let ds = Dataset::read_csv(&a.run.data)?;
+            (score_from(&model, &ds, mode, a.run.x0())?, ds.len())
+        }
+    };
     let diverged = sc.diverged_at.map(|k| {
         format!(
             "diverged at sample {k} (line {} of {}): the {} output is not finite or beyond 1e100 \
@@ -110,7 +124,7 @@ pub(super) fn run_validate(a: &ValidateArgs, out: &mut dyn Write) -> Result<(), 
             format!(
                 ", initial state estimated from the first {} samples, scored on the other {}",
                 sc.skipped,
-                ds.len() - sc.skipped
+                rows - sc.skipped
             )
         } else {
             String::new()
@@ -147,18 +161,37 @@ pub(super) fn run_simulate(a: &SimulateArgs, out: &mut dyn Write) -> Result<(), 
         &[("--out", a.out.as_path())],
     )?;
     let model = read_model(&a.run.model)?;
-    let mut ds = Dataset::read_csv(&a.run.data)?;
     let mode = a.run.mode();
-    let yhat = run(&model, &ds, mode, a.run.x0())?.yhat;
-    if let Some(k) = diverged_at(&yhat) {
-        return Err(CliError::Invalid(format!(
+    let diverged = |k: usize, source: &str| {
+        CliError::Invalid(format!(
             "{}: the simulation diverged at sample {k} (line {} of {}): the output is not \
              finite or beyond 1e100 from there on; nothing written to {}",
             a.run.model.display(),
             k + 2,
-            ds.source,
+            source,
             a.out.display()
-        )));
+        ))
+    };
+    let mut outputs = Outputs::default();
+    // a large file in chunks, its output written chunk by chunk into the staged file
+    if should_stream_data(&a.run.data) {
+        match simulate_streaming(&model, &a.run.data, mode, a.run.x0(), &a.out) {
+            Some(Ok(s)) => {
+                outputs.staged(s.staged);
+                outputs.commit()?;
+                return wrote(out, s.rows, s.outputs, &a.out);
+            }
+            Some(Err(SimulateFailure::Diverged(k))) => {
+                return Err(diverged(k, &a.run.data.display().to_string()))
+            }
+            Some(Err(SimulateFailure::Write(e))) => return Err(e.into()),
+            None => {}
+        }
+    }
+    let mut ds = Dataset::read_csv(&a.run.data)?;
+    let yhat = run(&model, &ds, mode, a.run.x0())?.yhat;
+    if let Some(k) = diverged_at(&yhat) {
+        return Err(diverged(k, &ds.source));
     }
     for j in 0..yhat.ncols() {
         let mut name = format!("yhat{}", j + 1);
@@ -168,15 +201,17 @@ pub(super) fn run_simulate(a: &SimulateArgs, out: &mut dyn Write) -> Result<(), 
         ds.names.push(name);
         ds.cols.push(yhat.column(j).iter().copied().collect());
     }
-    let mut outputs = Outputs::default();
     outputs.bytes(&a.out, &ds.to_csv_bytes(&a.out)?)?;
     outputs.commit()?;
+    wrote(out, ds.len(), yhat.ncols(), &a.out)
+}
+
+/// What `lpvid simulate` says when it has written its output.
+fn wrote(out: &mut dyn Write, rows: usize, outputs: usize, path: &Path) -> Result<(), CliError> {
     writeln!(
         out,
-        "wrote {} rows with {} simulated outputs to {}",
-        ds.len(),
-        yhat.ncols(),
-        a.out.display()
+        "wrote {rows} rows with {outputs} simulated outputs to {}",
+        path.display()
     )?;
     Ok(())
 }
