@@ -1320,6 +1320,12 @@ pub fn evidence(
     ev
 }
 
+/// When the best variant of `output-nonlinearity` does not replicate, at most this many of its other
+/// variants that pass the full-data threshold are replicated in its place (best first). Each
+/// must pass the same two-half check, so the chance of a replication by estimation noise
+/// alone grows at most this factor + 1 (about 0.25 % each).
+pub const MAX_ALTERNATIVES: usize = 2;
+
 /// Level of each half's test in the replication check.
 pub const REPLICATION_ALPHA: f64 = 0.05;
 

@@ -3,7 +3,8 @@
 //! contract's own-output factors (DESIGN.md section 5, docs/model-format.md), tried both ways:
 //!
 //! - **Lur'e feedback**: an input channel f(y) of the model's own output, f one of y^2, y^3,
-//!   |y| y, sin y, sqrt|y| (delay 0: the output equation does not use it);
+//!   |y| y, sin y, sqrt|y|, and sin(y / spread) when the output's spread is far from 1
+//!   (delay 0: the output equation does not use it);
 //! - **quasi-LPV**: a scheduling function y^2 or |y| (only with an output equation that does
 //!   not depend on scheduling).
 //!
@@ -35,9 +36,10 @@ fn own(col: &str, pow: f64, func: Option<FactorFn>) -> Factor {
 /// Named products of factors.
 type Shapes = Vec<(String, Vec<Factor>)>;
 
-/// The Lur'e channels and scheduling functions of output column `c`, with their names.
-fn shapes(c: &str) -> (Shapes, Shapes) {
-    let lure = vec![
+/// The Lur'e channels and scheduling functions of output column `c`, with their names;
+/// `spread` is the standard deviation of the column on the training data.
+fn shapes(c: &str, spread: f64) -> (Shapes, Shapes) {
+    let mut lure = vec![
         (format!("{c}^2"), vec![own(c, 2.0, None)]),
         (format!("{c}^3"), vec![own(c, 3.0, None)]),
         (
@@ -47,6 +49,22 @@ fn shapes(c: &str) -> (Shapes, Shapes) {
         (format!("sin({c})"), vec![own(c, 1.0, Some(FactorFn::Sin))]),
         (format!("sqrt|{c}|"), vec![own(c, 0.5, None)]),
     ];
+    // sin is the one shape that is not homogeneous: sin(y) suits an angle in radians, and an
+    // output in other units (degrees, counts, a scaled sensor) needs sin(omega y).
+    // omega = 1 / spread is tried besides it unless the spread is within a factor 1.5 of 1,
+    // where the two are nearly the same shape. On the plant family (diagnose::plants, a sin
+    // of the output in units of its spread; seeds 1000-1015) it was the variant named on 3 of
+    // the 7 sin plants found
+    if spread.is_finite() && spread > 0.0 && spread.ln().abs() > 1.5f64.ln() {
+        let w = 1.0 / spread;
+        lure.push((
+            format!("sin({w:.4}*{c}) (omega = 1 / the output's spread)"),
+            vec![Factor {
+                omega: Some(w),
+                ..own(c, 1.0, Some(FactorFn::Sin))
+            }],
+        ));
+    }
     let sched = vec![
         (format!("{c}^2"), vec![own(c, 2.0, None)]),
         (format!("|{c}|"), vec![own(c, 1.0, Some(FactorFn::Abs))]),
@@ -82,10 +100,14 @@ pub fn candidates(ctx: &Context<'_>) -> (Vec<(String, Spec)>, Option<String>) {
     let present = |p: &[Factor]| map.inputs.iter().chain(&map.scheduling).any(|q| q == p);
     let mut out = Vec::new();
     for c in &outs {
-        if ctx.train.column(c).is_none() {
+        let Some(col) = ctx.train.column(c) else {
             continue;
-        }
-        let (lure, sched) = shapes(c);
+        };
+        let mean = col.iter().sum::<f64>() / col.len().max(1) as f64;
+        let spread = (col.iter().map(|v| (v - mean) * (v - mean)).sum::<f64>()
+            / col.len().max(1) as f64)
+            .sqrt();
+        let (lure, sched) = shapes(c, spread);
         for (name, prod) in lure {
             if present(&prod) {
                 continue;

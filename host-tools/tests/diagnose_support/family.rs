@@ -88,6 +88,34 @@ pub fn run_one_with(effect: &str, seed: u64, n: usize, val_len: Option<usize>) -
         Err(e) => return fail(e.to_string()),
     };
     let r = &out.report;
+    if std::env::var("LPVID_FAMILY_VERBOSE").is_ok() {
+        // per-plant detail: the findings (with the rule that blocked each) and the
+        // output-nonlinearity variants, for tracing a miss to its cause
+        let mut v = format!("{effect} seed {seed}: {}\n", case.description);
+        for f in r.findings.iter().take(4) {
+            let _ = writeln!(
+                v,
+                "    finding {} ({}) explained {:.3} p {:.1e} rep {:?} sig {} blocked {:?}",
+                f.effect,
+                f.detail,
+                f.explained,
+                f.p_value,
+                f.replication,
+                f.significant,
+                f.blocked_by
+            );
+        }
+        for s in r.steps.iter().take(1).flat_map(|st| &st.variants_scored) {
+            if s.effect == "output-nonlinearity" || s.explained > 0.05 {
+                let _ = writeln!(
+                    v,
+                    "    variant {} {} explained {:.3} p {:.1e} {:?}",
+                    s.effect, s.detail, s.explained, s.p_value, s.error
+                );
+            }
+        }
+        print!("{v}");
+    }
     let named = r
         .findings
         .first()
