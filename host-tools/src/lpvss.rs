@@ -238,31 +238,13 @@ impl LpvSs {
 
     /// The output equation y = C(mu) x + D(mu) u into `y` (one C or D: parameter-independent),
     /// without allocating: every simulation's sample loop (`run_x0`,
-    /// `simulate::free_run_ss`) is made of this and [`LpvSs::state_into`].
+    /// `simulate::free_run_ss_into`, the streamed score, BPDN-SV's scorer) is made of this and
+    /// [`LpvSs::state_into`].
     pub fn output_into(&self, mu: &[f64], x: &[f64], u: &[f64], y: &mut [f64]) {
-        let (cs, ds) = (self.c.len() > 1, self.d.len() > 1);
         for (j, yj) in y.iter_mut().enumerate() {
             let mut acc = 0.0;
-            for (i, c) in self.c.iter().enumerate() {
-                let w = if cs { mu[i] } else { 1.0 };
-                if w != 0.0 {
-                    acc += w * x
-                        .iter()
-                        .enumerate()
-                        .map(|(a, xa)| c[(j, a)] * xa)
-                        .sum::<f64>();
-                }
-            }
-            for (i, d) in self.d.iter().enumerate() {
-                let w = if ds { mu[i] } else { 1.0 };
-                if w != 0.0 {
-                    acc += w * u
-                        .iter()
-                        .enumerate()
-                        .map(|(a, ua)| d[(j, a)] * ua)
-                        .sum::<f64>();
-                }
-            }
+            add_scheduled_row(&mut acc, &self.c, mu, j, x);
+            add_scheduled_row(&mut acc, &self.d, mu, j, u);
             *yj = acc;
         }
     }
@@ -297,5 +279,21 @@ impl LpvSs {
     /// Frozen-scheduling matrix A(mu) = sum_i mu_i A^(i).
     pub fn a_at(&self, mu: &DVector<f64>) -> DMatrix<f64> {
         scheduled(&self.a, mu)
+    }
+}
+
+/// acc += sum_i mu_i (M_i v)_j, in the order of i (a single matrix: parameter-independent,
+/// weight 1); the output equation's one term ([`LpvSs::output_into`]).
+fn add_scheduled_row(acc: &mut f64, mats: &[DMatrix<f64>], mu: &[f64], j: usize, v: &[f64]) {
+    let scheduled = mats.len() > 1;
+    for (i, m) in mats.iter().enumerate() {
+        let w = if scheduled { mu[i] } else { 1.0 };
+        if w != 0.0 {
+            *acc += w * v
+                .iter()
+                .enumerate()
+                .map(|(a, va)| m[(j, a)] * va)
+                .sum::<f64>();
+        }
     }
 }
