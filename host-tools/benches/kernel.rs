@@ -6,6 +6,11 @@
 //! q up to 131 064; Z then takes 247 MB). Both single-threaded. The two matrices agree to
 //! rounding (checked here before timing, and by `tests/kernel_explicit.rs`).
 //!
+//! Group `kernel_sweep_threads` (issue 16, both cores): the two sweeps a kernel-form fit runs
+//! (the kernel matrix of (19) and Gamma K Z of eq. (25), `pbsid::dual_kernel_matrix_with` /
+//! `dual_gamma_kz_matrix_with`) on one thread against two, in the same run, on B2 N = 75
+//! p = 5, B3 N = 250 p = 8 and B1 N = 1000 p = 5; it sets `pbsid::SWEEP_SPLIT_MIN_WORK`.
+//!
 //! `cargo bench -p lpvid-host --bench kernel -- --warm-up-time 1 --measurement-time 3`
 
 #[path = "kernel/explicit.rs"]
@@ -60,5 +65,57 @@ fn kernel_construction(c: &mut Criterion) {
     }
 }
 
-criterion_group!(benches, kernel_construction);
+fn sweep_threads(c: &mut Criterion) {
+    let cases = [
+        ("B2 N=75 p=5", systems::b2(75, 25.0, 1).train, 5usize),
+        ("B3 N=250 p=8", systems::b3(250, 1).train, 8),
+        ("B1 N=1000 p=5", systems::b1(1000, 0.1, 1).train, 5),
+    ];
+    let mut group = c.benchmark_group("kernel_sweep_threads");
+    group.sample_size(10);
+    for (name, sig, p) in &cases {
+        let (r, l, s) = (sig.u.ncols(), sig.y.ncols(), sig.p.ncols());
+        let rows = explicit::slab_rows(sig);
+        let slab = Slab::new(&rows, r, l, s + 1).unwrap();
+        let dims = PbsidDims::new(r, l, s, *p).unwrap();
+        let nb = sig.len() - p;
+        let alpha = nalgebra::DMatrix::from_fn(l, nb, |j, a| ((j * nb + a) as f64 * 0.37).cos());
+        eprintln!(
+            "{name}: kernel sweep work {:.2e}, Gamma K Z sweep work {:.2e} (split from {:.0e})",
+            (nb * nb / 2 * p) as f64,
+            ((nb + 1) * (nb + p) * p) as f64,
+            lpvid_host::pbsid::SWEEP_SPLIT_MIN_WORK
+        );
+        for workers in [1usize, 2] {
+            group.bench_function(
+                BenchmarkId::new(format!("kernel matrix, {workers} thread(s)"), name),
+                |b| {
+                    b.iter(|| {
+                        black_box(lpvid_host::pbsid::dual_kernel_matrix_with(
+                            &slab, *p, nb, true, workers,
+                        ))
+                    })
+                },
+            );
+            group.bench_function(
+                BenchmarkId::new(format!("Gamma K Z, {workers} thread(s)"), name),
+                |b| {
+                    b.iter(|| {
+                        black_box(lpvid_host::pbsid::dual_gamma_kz_matrix_with(
+                            &dims,
+                            *p,
+                            &slab,
+                            &alpha,
+                            nb + 1,
+                            workers,
+                        ))
+                    })
+                },
+            );
+        }
+    }
+    group.finish();
+}
+
+criterion_group!(benches, kernel_construction, sweep_threads);
 criterion_main!(benches);

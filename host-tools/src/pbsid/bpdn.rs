@@ -473,9 +473,9 @@ pub fn slab_signals(slab: &Slab<'_, f64>, r: usize, l: usize) -> Signals {
 }
 
 /// Sum of squared free-run simulation errors of `model` on `sig` (from x0 = 0); +inf when
-/// the simulation diverges. The free run of [`LpvSs::simulate`] (its allocation-free step,
-/// [`LpvSs::output_into`] and [`LpvSs::state_into`]) scored as it goes: BPDN-SV scores every
-/// path point and order with it.
+/// the simulation diverges: the free run of [`LpvSs::simulate`] (the same equations, the
+/// same divergence rule) scored as it goes, on the model packed by [`FreeRun`]. BPDN-SV
+/// scores every path point and order with it.
 pub fn simulation_error(model: &LpvSs, sig: &Signals) -> f64 {
     simulation_error_below(model, sig, f64::INFINITY)
 }
@@ -484,39 +484,192 @@ pub fn simulation_error(model: &LpvSs, sig: &Signals) -> f64 {
 /// sum only grows, so a candidate that reaches the best score so far cannot beat it, and
 /// the selection is the same as with every candidate simulated to the end.
 pub fn simulation_error_below(model: &LpvSs, sig: &Signals, bound: f64) -> f64 {
-    let (n, r, l, m) = (model.n(), model.r(), model.l(), model.m());
-    let s = sig.p.ncols().min(m - 1);
-    let (mut x, mut xn) = (vec![0.0; n], vec![0.0; n]);
-    let (mut mu, mut u, mut y) = (vec![0.0; m], vec![0.0; r], vec![0.0; l]);
-    mu[0] = 1.0;
-    let mut err = 0.0;
-    for k in 0..sig.len() {
-        for i in 0..s {
-            mu[i + 1] = sig.p[(k, i)];
+    FreeRun::new(model).error_below(&ScoredRecord::new(sig, model.m()), bound)
+}
+
+/// A record the scorer runs on, row-major: sample k is [mu_1 .. mu_{m-1}, u, y] (the
+/// scheduling signals beyond what the model takes are dropped, missing ones are zero), so
+/// that a candidate's free run reads it contiguously. Built once per BPDN-SV depth.
+pub struct ScoredRecord {
+    s: usize,
+    r: usize,
+    l: usize,
+    rows: Vec<f64>,
+}
+
+impl ScoredRecord {
+    /// The record of `sig` for models with `m` local models.
+    pub fn new(sig: &Signals, m: usize) -> Self {
+        let (r, l) = (sig.u.ncols(), sig.y.ncols());
+        let s = m.saturating_sub(1);
+        let w = s + r + l;
+        let mut rows = vec![0.0; sig.len() * w];
+        for (k, row) in rows.chunks_exact_mut(w.max(1)).take(sig.len()).enumerate() {
+            let (sched, rest) = row.split_at_mut(s);
+            let (u, y) = rest.split_at_mut(r);
+            for (i, v) in sched.iter_mut().enumerate().take(sig.p.ncols()) {
+                *v = sig.p[(k, i)];
+            }
+            for (j, v) in u.iter_mut().enumerate() {
+                *v = sig.u[(k, j)];
+            }
+            for (j, v) in y.iter_mut().enumerate() {
+                *v = sig.y[(k, j)];
+            }
         }
-        for (j, v) in u.iter_mut().enumerate() {
-            *v = sig.u[(k, j)];
+        ScoredRecord { s, r, l, rows }
+    }
+
+    /// Number of samples.
+    pub fn len(&self) -> usize {
+        self.rows.len() / (self.s + self.r + self.l).max(1)
+    }
+
+    /// Whether the record has no samples.
+    pub fn is_empty(&self) -> bool {
+        self.rows.is_empty()
+    }
+}
+
+/// Dot product of two short slices in order (the scorer's rows are a few entries long).
+#[inline(always)]
+fn dot(a: &[f64], b: &[f64]) -> f64 {
+    a.iter().zip(b).map(|(x, y)| x * y).sum()
+}
+
+/// An LPV model's free run packed for the scorer: the state equation as one row-major
+/// n x m(n + r) matrix [A^(1) B^(1) | ... | A^(m) B^(m)] applied to mu (x) [x; u], the output
+/// equation as one l x (c(n) + d(r)) matrix [C^(1) .. | D^(1) ..] applied to the scheduled
+/// copies of x and u (one C or D: parameter-independent). A step is then n + l contiguous
+/// dot products; `LpvSs::state_into` / `output_into` walk the column-major matrices with
+/// bounds checks (BPDN-SV's scorer was half of a B2 BPDN-SV fit's instructions, callgrind).
+/// The sums are the same up to the order of the additions.
+pub struct FreeRun {
+    n: usize,
+    r: usize,
+    l: usize,
+    m: usize,
+    /// Row i: [A^(1)_i B^(1)_i ... A^(m)_i B^(m)_i].
+    state: Vec<f64>,
+    /// Row j: [C^(1)_j ... C^(c)_j D^(1)_j ... D^(d)_j].
+    output: Vec<f64>,
+    /// Numbers of C and D matrices.
+    nc: usize,
+    nd: usize,
+}
+
+impl FreeRun {
+    /// Pack `model`.
+    pub fn new(model: &LpvSs) -> Self {
+        let (n, r, l, m) = (model.n(), model.r(), model.l(), model.m());
+        let (nc, nd) = (model.c.len(), model.d.len());
+        let w = m * (n + r);
+        let mut state = vec![0.0; n * w];
+        for i in 0..n {
+            let row = &mut state[i * w..(i + 1) * w];
+            for s in 0..m {
+                let (a, b) = row[s * (n + r)..(s + 1) * (n + r)].split_at_mut(n);
+                for (c, dst) in a.iter_mut().enumerate() {
+                    *dst = model.a[s][(i, c)];
+                }
+                for (c, dst) in b.iter_mut().enumerate() {
+                    *dst = model.b[s][(i, c)];
+                }
+            }
         }
-        model.output_into(&mu, &x, &u, &mut y);
-        for (o, yo) in y.iter().enumerate() {
-            let e = yo - sig.y[(k, o)];
-            err += e * e;
+        let wo = nc * n + nd * r;
+        let mut output = vec![0.0; l * wo];
+        for j in 0..l {
+            let row = &mut output[j * wo..(j + 1) * wo];
+            for (s, c) in model.c.iter().enumerate() {
+                for (a, dst) in row[s * n..(s + 1) * n].iter_mut().enumerate() {
+                    *dst = c[(j, a)];
+                }
+            }
+            for (s, d) in model.d.iter().enumerate() {
+                let o = nc * n + s * r;
+                for (a, dst) in row[o..o + r].iter_mut().enumerate() {
+                    *dst = d[(j, a)];
+                }
+            }
         }
-        if err >= bound {
-            return f64::INFINITY;
-        }
-        model.state_into(&mu, &x, &u, None, &mut xn);
-        std::mem::swap(&mut x, &mut xn);
-        // diverged (as `LpvSs::simulate` marks it: the rest of the run is NaN)
-        let diverged = x.iter().any(|v| !v.is_finite() || v.abs() > 1e150);
-        if diverged && k + 1 < sig.len() {
-            return f64::INFINITY;
+        FreeRun {
+            n,
+            r,
+            l,
+            m,
+            state,
+            output,
+            nc,
+            nd,
         }
     }
-    if err.is_finite() {
-        err
-    } else {
-        f64::INFINITY
+
+    /// The squared free-run error on `rec` from x0 = 0, +inf once it reaches `bound` or
+    /// the state diverges (non-finite or beyond 1e150, as `LpvSs::simulate` marks it).
+    pub fn error_below(&self, rec: &ScoredRecord, bound: f64) -> f64 {
+        let (n, r, l, m) = (self.n, self.r, self.l, self.m);
+        assert!(
+            rec.s + 1 == m && rec.r == r && rec.l == l,
+            "record and model differ in size"
+        );
+        let w = m * (n + r);
+        let wo = self.nc * n + self.nd * r;
+        let mut x = vec![0.0; n];
+        let mut v = vec![0.0; w];
+        let mut vo = vec![0.0; wo];
+        let mut mu = vec![0.0; m];
+        mu[0] = 1.0;
+        let samples = rec.len();
+        let mut err = 0.0;
+        for (k, row) in rec.rows.chunks_exact((rec.s + r + l).max(1)).enumerate() {
+            let (sched, rest) = row.split_at(rec.s);
+            let (u, y) = rest.split_at(r);
+            mu[1..].copy_from_slice(sched);
+            // a single C or D is parameter-independent (weight 1)
+            for i in 0..self.nc {
+                let wi = if self.nc > 1 { mu[i] } else { 1.0 };
+                for (dst, xv) in vo[i * n..(i + 1) * n].iter_mut().zip(&x) {
+                    *dst = wi * xv;
+                }
+            }
+            for (i, &mi) in mu.iter().enumerate().take(self.nd) {
+                let wi = if self.nd > 1 { mi } else { 1.0 };
+                let o = self.nc * n + i * r;
+                for (dst, uv) in vo[o..o + r].iter_mut().zip(u) {
+                    *dst = wi * uv;
+                }
+            }
+            for (yj, orow) in y.iter().zip(self.output.chunks_exact(wo.max(1))) {
+                let e = dot(orow, &vo) - yj;
+                err += e * e;
+            }
+            if err >= bound {
+                return f64::INFINITY;
+            }
+            for (blk, &wi) in v.chunks_exact_mut((n + r).max(1)).zip(&mu) {
+                let (bx, bu) = blk.split_at_mut(n);
+                for (dst, xv) in bx.iter_mut().zip(&x) {
+                    *dst = wi * xv;
+                }
+                for (dst, uv) in bu.iter_mut().zip(u) {
+                    *dst = wi * uv;
+                }
+            }
+            let mut diverged = false;
+            for (xi, srow) in x.iter_mut().zip(self.state.chunks_exact(w.max(1))) {
+                *xi = dot(srow, &v);
+                diverged |= !xi.is_finite() || xi.abs() > 1e150;
+            }
+            if diverged && k + 1 < samples {
+                return f64::INFINITY;
+            }
+        }
+        if err.is_finite() {
+            err
+        } else {
+            f64::INFINITY
+        }
     }
 }
 
@@ -639,6 +792,7 @@ pub fn select_by_simulation_with(
         None => train.clone(),
     };
     let nl = (scored.len() * l) as f64;
+    let record = ScoredRecord::new(&scored, m);
     let orders: Vec<usize> = orders
         .iter()
         .copied()
@@ -694,7 +848,7 @@ pub fn select_by_simulation_with(
                 Some(b) if val.is_some() => b.score,
                 Some(b) => nl * ((b.score - penalty) / nl).exp(),
             } * (1.0 + 1e-9);
-            let v = simulation_error_below(&model, &scored, bound);
+            let v = FreeRun::new(&model).error_below(&record, bound);
             let score = if val.is_some() {
                 v
             } else {

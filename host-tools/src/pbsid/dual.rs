@@ -162,12 +162,55 @@ pub fn detect_period(slab: &Slab<'_, f64>, s: usize) -> Option<usize> {
     })
 }
 
+/// Multiply-adds of a kernel sweep (window columns x entries x p) from which it runs on two
+/// threads: below it a thread's start costs more than half the sweep (`benches/kernel.rs`,
+/// group `kernel_sweep_threads`, one thread against two at N = 75, 250, 1000).
+pub const SWEEP_SPLIT_MIN_WORK: f64 = 1e6;
+
+/// Threads for a sweep of `work` multiply-adds: two from [`SWEEP_SPLIT_MIN_WORK`] on when
+/// the machine has two cores, else one.
+pub fn sweep_workers(work: f64) -> usize {
+    let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
+    if work >= SWEEP_SPLIT_MIN_WORK && cores >= 2 {
+        2
+    } else {
+        1
+    }
+}
+
+/// Run `job(columns, out)` over the column range `0..cols` of a column-major output of
+/// `rows` rows: on the calling thread (`workers` 1), or split at `cut` with the columns
+/// `cut..cols` on a second thread (`workers` 2). Each part writes only its own columns, so
+/// the result does not depend on the split.
+fn split_columns(
+    out: &mut [f64],
+    rows: usize,
+    cols: usize,
+    cut: usize,
+    workers: usize,
+    job: impl Fn(std::ops::Range<usize>, &mut [f64]) + Sync,
+) {
+    let cut = cut.min(cols);
+    if workers < 2 || cut == 0 || cut == cols {
+        job(0..cols, out);
+        return;
+    }
+    let (first, second) = out.split_at_mut(cut * rows);
+    std::thread::scope(|sc| {
+        let job = &job;
+        let h = sc.spawn(move || job(cut..cols, second));
+        job(0..cut, first);
+        h.join().unwrap_or_else(|e| std::panic::resume_unwind(e));
+    });
+}
+
 /// Kernel paper, eq. (25); the batched form of `lpvid::kernel::shifted_kernel` over
 /// [`KernelSweep`]: row block i of Gamma^p K^p Z is alpha sum_{j >= i} (Z^{i,j})^T Z^{1,j}.
 /// Entry (a, b) of that kernel is `shifted_kernel(slab, a, slab, b, i, p)`, Theorem 10
 /// between the window starting at a - i + 1 and window b summed over t0 >= i - 1; one
 /// backward pass over t gives it for every i at once. Columns are windows b = 0..cols (a
-/// window needs only its p samples, not a target).
+/// window needs only its p samples, not a target). The columns are split over two threads
+/// when the sweep is large enough to gain ([`sweep_workers`]).
 pub fn dual_gamma_kz_matrix(
     dims: &PbsidDims,
     f: usize,
@@ -175,53 +218,92 @@ pub fn dual_gamma_kz_matrix(
     alpha: &DMatrix<f64>,
     cols: usize,
 ) -> DMatrix<f64> {
+    let work = (cols * (alpha.ncols() + dims.p) * dims.p) as f64;
+    dual_gamma_kz_matrix_with(dims, f, slab, alpha, cols, sweep_workers(work))
+}
+
+/// [`dual_gamma_kz_matrix`] on `workers` threads (1 or 2; the result does not depend on it).
+pub fn dual_gamma_kz_matrix_with(
+    dims: &PbsidDims,
+    f: usize,
+    slab: &Slab<'_, f64>,
+    alpha: &DMatrix<f64>,
+    cols: usize,
+    workers: usize,
+) -> DMatrix<f64> {
     let (p, l) = (dims.p, dims.l);
     let nb = alpha.ncols();
     // alpha row by row, contiguous
     let alpha_rows: Vec<Vec<f64>> = (0..l)
         .map(|j| alpha.row(j).iter().copied().collect())
         .collect();
-    let mut out = DMatrix::zeros(f * l, cols);
-    let mut sweep = KernelSweep::new(slab, p);
+    let rows = f * l;
+    let mut out = DMatrix::zeros(rows, cols);
     // window starts s = -(p-1) .. nb-1; row block i = t + 1 pairs window a with s = a - t
     let s0 = -(p as isize - 1);
-    for b in 0..cols {
-        sweep.window(b, s0, nb + p - 1, |t, ks| {
-            if t < f {
-                let k = &ks[p - 1 - t..p - 1 - t + nb];
-                for (j, ar) in alpha_rows.iter().enumerate() {
-                    out[(t * l + j, b)] = dot4(ar, k);
+    let job = |range: std::ops::Range<usize>, dst: &mut [f64]| {
+        let mut sweep = KernelSweep::new(slab, p);
+        let first = range.start;
+        for b in range {
+            let col = &mut dst[(b - first) * rows..(b - first + 1) * rows];
+            sweep.window(b, s0, nb + p - 1, |t, ks| {
+                if t < f {
+                    let k = &ks[p - 1 - t..p - 1 - t + nb];
+                    for (j, ar) in alpha_rows.iter().enumerate() {
+                        col[t * l + j] = dot4(ar, k);
+                    }
                 }
-            }
-        });
-    }
+            });
+        }
+    };
+    split_columns(out.as_mut_slice(), rows, cols, cols / 2, workers, job);
     out
 }
 
 /// Kernel paper, eq. (19) with Theorem 10: the dual kernel [Z^T Z + U^T U] over windows
 /// 0..nb (the U^T U term only with feedthrough), for all pairs by [`KernelSweep`] (the
-/// batched form of `lpvid::kernel::dual_kernel`).
+/// batched form of `lpvid::kernel::dual_kernel`). The columns are split over two threads
+/// when the sweep is large enough to gain ([`sweep_workers`]).
 pub fn dual_kernel_matrix(
     slab: &Slab<'_, f64>,
     p: usize,
     nb: usize,
     feedthrough: bool,
 ) -> DMatrix<f64> {
+    let work = (nb * nb / 2 * p) as f64;
+    dual_kernel_matrix_with(slab, p, nb, feedthrough, sweep_workers(work))
+}
+
+/// [`dual_kernel_matrix`] on `workers` threads (1 or 2; the result does not depend on it).
+pub fn dual_kernel_matrix_with(
+    slab: &Slab<'_, f64>,
+    p: usize,
+    nb: usize,
+    feedthrough: bool,
+    workers: usize,
+) -> DMatrix<f64> {
     let mut g = DMatrix::<f64>::zeros(nb, nb);
-    let mut sweep = KernelSweep::new(slab, p);
-    for b in 0..nb {
-        sweep.window(b, 0, b + 1, |t, ks| {
-            if t == 0 {
-                g.view_mut((0, b), (b + 1, 1)).copy_from_slice(ks);
-            }
-        });
-        if feedthrough {
-            let ub = slab.u(b + p);
-            for a in 0..=b {
-                g[(a, b)] += lpvid::real::dot(slab.u(a + p), ub);
+    // column b holds b + 1 entries: the first nb / sqrt(2) columns are half the work
+    let cut = (nb as f64 / std::f64::consts::SQRT_2).round() as usize;
+    let job = |range: std::ops::Range<usize>, dst: &mut [f64]| {
+        let mut sweep = KernelSweep::new(slab, p);
+        let first = range.start;
+        for b in range {
+            let col = &mut dst[(b - first) * nb..(b - first + 1) * nb];
+            sweep.window(b, 0, b + 1, |t, ks| {
+                if t == 0 {
+                    col[..=b].copy_from_slice(ks);
+                }
+            });
+            if feedthrough {
+                let ub = slab.u(b + p);
+                for (a, v) in col[..=b].iter_mut().enumerate() {
+                    *v += lpvid::real::dot(slab.u(a + p), ub);
+                }
             }
         }
-    }
+    };
+    split_columns(g.as_mut_slice(), nb, nb, cut, workers, job);
     for b in 0..nb {
         for a in 0..b {
             g[(b, a)] = g[(a, b)];
@@ -234,6 +316,29 @@ pub fn dual_kernel_matrix(
 mod tests {
     use super::*;
     use lpvid::kernel::shifted_kernel;
+
+    /// Both sweeps give the same matrices on one thread and on two (each column is computed
+    /// by the same code whichever thread runs it).
+    #[test]
+    fn sweeps_on_two_threads_equal_one() {
+        let (r, l, s, p) = (1usize, 2usize, 1usize, 3usize);
+        let dims = PbsidDims::new(r, l, s, p).unwrap();
+        let n = 41;
+        let rows = crate::kernel_sweep::tests::record(r, l, dims.m(), n);
+        let slab = Slab::new(&rows, r, l, dims.m()).unwrap();
+        let nb = n - p;
+        for ft in [false, true] {
+            let one = dual_kernel_matrix_with(&slab, p, nb, ft, 1);
+            let two = dual_kernel_matrix_with(&slab, p, nb, ft, 2);
+            assert_eq!(one, two);
+            assert!(one.iter().any(|v| *v != 0.0));
+        }
+        let alpha = DMatrix::from_fn(l, nb, |j, a| ((j * nb + a) as f64 * 0.37).cos());
+        let one = dual_gamma_kz_matrix_with(&dims, p, &slab, &alpha, nb + 1, 1);
+        let two = dual_gamma_kz_matrix_with(&dims, p, &slab, &alpha, nb + 1, 2);
+        assert_eq!(one, two);
+        assert_eq!(sweep_workers(0.0), 1);
+    }
 
     /// Eq. (25) by the batched sweep equals alpha times the core's per-entry
     /// `shifted_kernel`, row block by row block, including the successor window N - p.

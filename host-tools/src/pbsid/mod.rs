@@ -44,7 +44,10 @@ use lpvid::{stat_vector_len, Gram, PbsidDims, Slab, StatsLayout};
 
 use crate::lpvss::Signals;
 
-pub use dual::{detect_period, dual_gamma_kz_matrix, dual_kernel_matrix, select_kernel_rows};
+pub use dual::{
+    detect_period, dual_gamma_kz_matrix, dual_gamma_kz_matrix_with, dual_kernel_matrix,
+    dual_kernel_matrix_with, select_kernel_rows, sweep_workers, SWEEP_SPLIT_MIN_WORK,
+};
 pub use error::FitError;
 pub use order::{
     far_worse, free_run_order, select_order, FAR_WORSE_GAP, FAR_WORSE_RATIO, FLOOR_FACTOR,
