@@ -597,6 +597,17 @@ pub fn candidates(ctx: &Context<'_>) -> (Vec<Candidate>, Vec<(Effect, String)>) 
             "an output equation with C^(i), D^(i) (y = sum_i mu^(i) (C^(i) x + D^(i) u))".into(),
             sp,
         );
+        // nested in the model's structure: its own A(mu), B(mu) kept, C^(i), D^(i) by least
+        // squares on their states (refit::scheduled_output_ls), which cannot fit the training
+        // data worse than the model's C, D
+        let mut sp = spec.clone();
+        sp.scheduled_output = true;
+        sp.output_ls = true;
+        push(
+            Effect::ScheduledOutput,
+            "an output equation with C^(i), D^(i) by least squares on the states of the model's own A(mu), B(mu)".into(),
+            sp,
+        );
     }
     // scheduling-nonlinearity
     let sched_plain: Vec<Factor> = map
@@ -1124,6 +1135,105 @@ pub fn regressors(spec: &Spec) -> usize {
         q = q.saturating_add(mj.saturating_mul(w));
     }
     q
+}
+
+/// Coefficients of a fitted model that are free: the non-zero entries of A^(i), B^(i),
+/// C^(i), D^(i) (and K^(i) for a one-step metric) of an LPV-SS model (a structural zero, e.g.
+/// D of `--no-feedthrough`, is not counted), the a and b coefficients of an LPV-ARX model.
+pub fn parameter_count(model: &ModelFile, mode: Mode) -> usize {
+    let nz = |ms: &[DMatrix<f64>]| {
+        ms.iter()
+            .map(|m| m.iter().filter(|v| **v != 0.0).count())
+            .sum::<usize>()
+    };
+    match &model.kind {
+        ModelKind::Ss(ss) => {
+            nz(&ss.a)
+                + nz(&ss.b)
+                + nz(&ss.c)
+                + nz(&ss.d)
+                + if mode == Mode::Predictor {
+                    nz(&ss.k)
+                } else {
+                    0
+                }
+        }
+        ModelKind::Arx(m) => {
+            m.a.iter().map(|v| v.len()).sum::<usize>()
+                + m.b.iter().flatten().map(|v| v.len()).sum::<usize>()
+        }
+    }
+}
+
+/// Parsimony among significant findings (issue 14). Two effects can both pass the noise
+/// threshold against the null refit because one structure reaches what the other models
+/// exactly: with p in the output equation the output is p x, which a p^2 basis of the state
+/// equation also reaches (the family's scheduled-output plants were named
+/// scheduling-nonlinearity in 2 of 4). The richer structure is kept first only when it
+/// earns its extra coefficients with the evidence a finding needs: its held-out batches
+/// beat the simpler finding's head to head, the same batch log-ratio t test as against the
+/// null ([`batch_log_ratios`], one-sided at ALPHA / `tried`). Otherwise the finding with
+/// fewer free coefficients ([`parameter_count`]) that the richer one does not beat comes
+/// first (the one explaining most of them), and the rule is applied again from it.
+///
+/// `order`: indices into `scored` of the significant findings, best (most explained) first.
+/// Returns the position in `order` to put first and why, when that is not position 0.
+pub fn prefer_simpler(order: &[usize], scored: &[Scored], tried: usize) -> Option<(usize, String)> {
+    if order.len() < 2 {
+        return None;
+    }
+    let level = ALPHA / tried.max(1) as f64;
+    let info = |i: usize| -> Option<(Vec<f64>, usize, Mode)> {
+        let s = &scored[i];
+        let mode = s.cand.effect.metric();
+        let e = s.eval.as_ref()?;
+        let f = s.fitted.as_ref()?;
+        Some((e.loss(mode), parameter_count(&f.model, mode), mode))
+    };
+    let infos: Vec<Option<(Vec<f64>, usize, Mode)>> = order.iter().map(|&i| info(i)).collect();
+    let mut top = 0usize;
+    let mut why = String::new();
+    let mut visited = vec![false; order.len()];
+    loop {
+        visited[top] = true;
+        let Some((l_top, k_top, m_top)) = &infos[top] else {
+            break;
+        };
+        let mut next: Option<usize> = None;
+        for (j, inf) in infos.iter().enumerate() {
+            let Some((l_j, k_j, m_j)) = inf else { continue };
+            if visited[j] || m_j != m_top || k_j >= k_top {
+                continue;
+            }
+            if scored[order[j]].cand.effect == scored[order[top]].cand.effect {
+                continue;
+            }
+            // does the richer top beat the simpler j on the held-out batches?
+            let r = batch_log_ratios(l_j, l_top, batch_count(l_j.len().min(l_top.len())));
+            let p = if r.len() < 2 {
+                1.0
+            } else {
+                let (t, nu) = mean_t(&r);
+                t_sf(t, nu)
+            };
+            if p >= level && next.is_none_or(|n| j < n) {
+                next = Some(j);
+                if why.is_empty() {
+                    why = format!(
+                        "preferred to {} ({} free coefficients against {}): that richer structure does not beat it on the held-out batches (p = {p:.1e}, needs < {level:.1e})",
+                        scored[order[top]].cand.effect.name(),
+                        k_j,
+                        k_top
+                    );
+                }
+            }
+        }
+        match next {
+            Some(j) => top = j,
+            None => break,
+        }
+    }
+    (top != 0).then_some((top, why))
 }
 
 /// One finding: an effect, its best variant, how much it explains and the evidence.

@@ -290,6 +290,22 @@ fn score_all(
     results.into_iter().flatten().collect()
 }
 
+/// Parsimony among the significant findings ([`effects::prefer_simpler`]): a simpler
+/// significant finding that the first one does not beat head to head is put first, with
+/// the reason in its evidence.
+fn prefer_simpler_first(findings: &mut Vec<(Finding, usize)>, scored: &[Scored], tried: usize) {
+    let order: Vec<usize> = findings
+        .iter()
+        .take_while(|f| f.0.significant)
+        .map(|f| f.1)
+        .collect();
+    if let Some((k, why)) = effects::prefer_simpler(&order, scored, tried) {
+        let mut f = findings.remove(k);
+        f.0.evidence.push(why);
+        findings.insert(0, f);
+    }
+}
+
 fn threshold() -> Threshold {
     Threshold {
         alpha: ALPHA,
@@ -628,6 +644,7 @@ pub fn diagnose_with_progress(
                 .cmp(&a.0.significant)
                 .then(b.0.explained.total_cmp(&a.0.explained))
         });
+        prefer_simpler_first(&mut findings, &scored, tried);
         // the rule that blocked each finding, for the stop line and the summary (human text
         // and JSON say the same)
         for (f, i) in findings.iter_mut() {

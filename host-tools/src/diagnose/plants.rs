@@ -4,7 +4,7 @@
 //! random stable poles (real or complex pairs, a random similarity transform), with or without
 //! an affine scheduling dependence, random effect strength, white output noise of 1-10 % of
 //! the noise-free output's standard deviation, and one of three input spectra (white,
-//! low-pass, random binary). The records carry `t` (a continuous clock, so the phase of a
+//! low-pass, random binary; never binary for input-nonlinearity, see `draw`). The records carry `t` (a continuous clock, so the phase of a
 //! periodic disturbance carries from training to validation), `u1`, `y1`, `p1` (scheduled
 //! plants) and `w` (a logged signal, for `unused-signal`). The `lpvid pbsid` settings of each
 //! case are what a user who does not know the effect would choose (for `order-too-low` and
@@ -186,7 +186,14 @@ fn draw(effect: &str, seed: u64, n: usize, rng: &mut StdRng) -> Option<FamilyCas
         words.push("affine in p1".into());
     }
     let p_kind = rng.gen_range(0..2u8);
-    let input_kind = rng.gen_range(0..3u8);
+    // a static nonlinearity of a two-level input is an offset and a gain (u^2 = 1,
+    // |u| u = u, tanh(c u) = tanh(c) u for u = +-1): on a random binary input the planted
+    // input-nonlinearity is exactly output-offset, and it was named so (seeds 1003 and 2001,
+    // 137x and 75x) or not at all (1002); its plants get a white input instead
+    let input_kind = match rng.gen_range(0..3u8) {
+        2 if effect == "input-nonlinearity" => 0,
+        k => k,
+    };
     let noise = rng.gen_range(0.01..0.10);
     // the user's model: the plant's order and a past window over which the slowest pole
     // decays to 5 % (a careful user; the family measures the detectors, not the order choice)

@@ -80,6 +80,10 @@ pub struct Spec {
     pub reg_text: String,
     /// Output equation with C^(i), D^(i).
     pub scheduled_output: bool,
+    /// With `scheduled_output`: C^(i), D^(i) by least squares on the states of the plain
+    /// refit's own A(mu), B(mu) ([`scheduled_output_ls`], nested in the plain structure)
+    /// instead of the scheduled-output state sequence ([`scheduled_states`]).
+    pub output_ls: bool,
     /// Autoregressive noise model (none, on the one-step or on the free-run residual).
     pub noise: Noise,
     /// When set, the model is an LPV-ARX model fitted by BC-IV (scheduling-noise path).
@@ -180,6 +184,7 @@ impl Spec {
                     opts: PbsidOptions::new(m.na.max(1)),
                     reg_text: "none".into(),
                     scheduled_output: false,
+                    output_ls: false,
                     noise: Noise::Pbsid,
                     arx: Some(ArxSpec {
                         na: m.na,
@@ -264,6 +269,7 @@ impl Spec {
                     reg_text,
                     scheduled_output: ss.c.len() > 1
                         || fit.get("output_equation").and_then(Value::as_str) == Some("scheduled"),
+                    output_ls: false,
                     noise: match fit
                         .get("noise_model")
                         .and_then(|v| v.get("residual"))
@@ -330,7 +336,10 @@ pub fn fit_spec(spec: &Spec, train: &Dataset, base_fit: &Value) -> Result<Fitted
     let mut f = pbsid::fit(&sub, &spec.opts)?;
     let mut ss = f.model.clone();
     let mut output_eq = "constant";
-    if spec.scheduled_output && sub.p.ncols() > 0 {
+    if spec.scheduled_output && spec.output_ls && sub.p.ncols() > 0 {
+        ss = scheduled_output_ls(&ss, &sub, spec.opts.feedthrough, spec.opts.past)?;
+        output_eq = "scheduled";
+    } else if spec.scheduled_output && sub.p.ncols() > 0 {
         let (states, sv, order) = scheduled_states(&sub, &f.scaling, &spec.opts, f.order)?;
         ss = realize_scheduled(&sub, &states, spec.opts.past, spec.opts.feedthrough)?;
         f.singular_values = sv;
@@ -396,6 +405,80 @@ pub fn fit_spec(spec: &Spec, train: &Dataset, base_fit: &Value) -> Result<Fitted
         order: f.order,
         noise_orders,
         sigma_p: None,
+    })
+}
+
+/// The scheduled output equation nested in the plain one (issue 14): A(mu), B(mu), K(mu)
+/// of the plain refit `ss` are kept, its deterministic state sequence
+/// x(k+1) = A(mu_k) x(k) + B(mu_k) u(k) from x(0) = 0 is simulated on the training signals,
+/// and C^(i), D^(i) are the least-squares fit of y(k) on mu_k (x) [x(k); u(k)] (D only with
+/// `feedthrough`), after `skip` samples of start transient. The plain C, D are one point of
+/// this family (C^(i) = D^(i) = 0 for i > 1), so on the training data its free-run error is
+/// at most the plain model's: the candidate cannot do worse than the null structure by
+/// construction. The scheduled-output state sequence ([`scheduled_states`]) is a different
+/// estimator, not nested: on the family's scheduled-output plants (seeds 2000-2003) it
+/// explained 22 % at p = 9e-3 on one plant where this one explained 19 % at p = 3e-5, and on
+/// another this one passed the threshold (43 %) where the other did not.
+pub fn scheduled_output_ls(
+    ss: &LpvSs,
+    sig: &Signals,
+    feedthrough: bool,
+    skip: usize,
+) -> Result<LpvSs, RefitError> {
+    let (n, r, l, m) = (ss.n(), sig.u.ncols(), sig.y.ncols(), sig.p.ncols() + 1);
+    let nk = sig.len();
+    let r_ft = if feedthrough { r } else { 0 };
+    let w1 = n + r_ft;
+    if nk <= skip + 2 * m * w1 {
+        return Err(RefitError::Numerical(
+            "too few samples for a scheduled output equation".into(),
+        ));
+    }
+    let mut xs = DMatrix::zeros(n, nk);
+    let mut x = DVector::zeros(n);
+    for k in 0..nk {
+        xs.set_column(k, &x);
+        let mu = sig.mu(k);
+        x = scheduled(&ss.a, &mu) * &x + scheduled(&ss.b, &mu) * sig.u.row(k).transpose();
+        if !x.iter().all(|v| v.is_finite() && v.abs() < 1e12) {
+            return Err(RefitError::Numerical(
+                "the model's state equation diverges on the training data".into(),
+            ));
+        }
+    }
+    let mut a = vec![0.0; w1];
+    let (th, _) = super::stats::lstsq(nk - skip, m * w1, l, |k, row| {
+        let k = k + skip;
+        a[..n].copy_from_slice(xs.column(k).as_slice());
+        for j in 0..r_ft {
+            a[n + j] = sig.u[(k, j)];
+        }
+        kron_mu(&sig.mu(k), &a, &mut row[..m * w1]);
+        for j in 0..l {
+            row[m * w1 + j] = sig.y[(k, j)];
+        }
+    })?;
+    if !th.iter().all(|v| v.is_finite()) {
+        return Err(RefitError::Numerical(
+            "the scheduled output equation's least squares is not finite".into(),
+        ));
+    }
+    let c: Vec<DMatrix<f64>> = (0..m).map(|i| th.columns(i * w1, n).into_owned()).collect();
+    let d: Vec<DMatrix<f64>> = (0..m)
+        .map(|i| {
+            if feedthrough {
+                th.columns(i * w1 + n, r).into_owned()
+            } else {
+                DMatrix::zeros(l, r)
+            }
+        })
+        .collect();
+    Ok(LpvSs {
+        a: ss.a.clone(),
+        b: ss.b.clone(),
+        k: ss.k.clone(),
+        c,
+        d,
     })
 }
 
