@@ -8,7 +8,7 @@ use clap::Args;
 use super::files::{check_dir, check_paths, refuse_inputs, Outputs};
 use super::{print_warnings, CliError, Ui};
 use crate::data::{read_input, same_file, DataError, Dataset};
-use crate::diagnose::{diagnose_with_progress, plots, report, Options};
+use crate::diagnose::{diagnose_with_progress, plots, refit_on_all, report, Options};
 use crate::model::ModelFile;
 use crate::pipeline::{fingerprint, DataFile};
 
@@ -22,8 +22,14 @@ pub struct DiagnoseArgs {
     #[arg(long)]
     pub train: PathBuf,
     /// Validation data (CSV): the held-out data every candidate is scored on.
-    #[arg(long)]
-    pub val: PathBuf,
+    #[arg(long, required_unless_present = "hold_out")]
+    pub val: Option<PathBuf>,
+    /// Instead of --val: hold out this fraction of the --train rows at their end (0 < F <
+    /// 0.5; the candidates are refit on the rows before). With --fix, the chosen structure is
+    /// then refit on all the --train rows (select on the held-out rows, then refit on
+    /// everything); its score on the held-out rows is in-sample and reported as such.
+    #[arg(long, conflicts_with = "val")]
+    pub hold_out: Option<f64>,
     /// Add the best effect to the model and refit it with the model's own settings.
     #[arg(long)]
     pub fix: bool,
@@ -47,11 +53,13 @@ pub struct DiagnoseArgs {
 
 /// Run `lpvid diagnose`.
 pub(super) fn run(a: &DiagnoseArgs, ui: Ui, out: &mut dyn Write) -> Result<(), CliError> {
-    let inputs = [
+    let mut inputs = vec![
         ("--model", a.model.as_path()),
         ("--train", a.train.as_path()),
-        ("--val", a.val.as_path()),
     ];
+    if let Some(v) = &a.val {
+        inputs.push(("--val", v.as_path()));
+    }
     let mut outs = Vec::new();
     if let Some(p) = &a.out {
         outs.push(("--out", p.as_path()));
@@ -65,28 +73,67 @@ pub(super) fn run(a: &DiagnoseArgs, ui: Ui, out: &mut dyn Write) -> Result<(), C
     }
     let model = read_model(&a.model)?;
     let train_file = DataFile::read(&a.train)?;
-    let train = &train_file.data;
-    let val_bytes = read_input(&a.val)?;
-    let val = Dataset::parse(&a.val.display().to_string(), &val_bytes[..])?;
     let mut warnings = Vec::new();
     let train_fp = fingerprint(&train_file.bytes);
-    if same_file(&a.train, &a.val) || train_fp == fingerprint(&val_bytes) {
-        warnings.push(format!(
-            "--train and --val are the same data ({}): the scores are not held-out, and a \
-             candidate that fits the noise looks like a finding",
-            if same_file(&a.train, &a.val) {
-                "the same file".to_string()
-            } else {
-                format!("identical content, FNV-1a {train_fp}")
+    // the rows the candidates are refit on and the held-out rows they are scored on
+    let (fit_rows, val) = match (&a.val, a.hold_out) {
+        (Some(vp), _) => {
+            let val_bytes = read_input(vp)?;
+            let val = Dataset::parse(&vp.display().to_string(), &val_bytes[..])?;
+            if same_file(&a.train, vp) || train_fp == fingerprint(&val_bytes) {
+                warnings.push(format!(
+                    "--train and --val are the same data ({}): the scores are not held-out, and a \
+                     candidate that fits the noise looks like a finding",
+                    if same_file(&a.train, vp) {
+                        "the same file".to_string()
+                    } else {
+                        format!("identical content, FNV-1a {train_fp}")
+                    }
+                ));
             }
-        ));
-    }
+            (None, val)
+        }
+        (None, Some(f)) => {
+            let n = train_file.data.len();
+            let held = (f * n as f64).round() as usize;
+            if !(f > 0.0 && f < 0.5) || held < 20 {
+                return Err(CliError::Invalid(format!(
+                    "--hold-out {f}: the fraction must be in (0, 0.5) and leave at least 20 held-out rows ({n} rows in --train)"
+                )));
+            }
+            let cut = |lo: usize, hi: usize, tag: &str| Dataset {
+                source: format!("{} rows {}..{} ({tag})", a.train.display(), lo + 1, hi),
+                names: train_file.data.names.clone(),
+                cols: train_file
+                    .data
+                    .cols
+                    .iter()
+                    .map(|c| c[lo..hi].to_vec())
+                    .collect(),
+            };
+            (Some(cut(0, n - held, "fit")), cut(n - held, n, "held out"))
+        }
+        (None, None) => {
+            return Err(CliError::Invalid(
+                "give --val or --hold-out: the held-out data the candidates are scored on".into(),
+            ))
+        }
+    };
+    let train = fit_rows.as_ref().unwrap_or(&train_file.data);
     if let Some(rec) = model
         .fit
         .get("train")
         .and_then(|t| t.get("fnv1a64"))
         .and_then(|v| v.as_str())
     {
+        if rec == train_fp && fit_rows.is_some() {
+            warnings.push(format!(
+                "the model was identified on all of --train {}, the held-out rows of --hold-out \
+                 included: its \"before\" score is in-sample; the candidates are compared with \
+                 the null structure refit on the rows before the hold-out",
+                a.train.display()
+            ));
+        }
         if rec != train_fp {
             warnings.push(format!(
                 "--train {} (FNV-1a {train_fp}) is not the file the model was identified on \
@@ -110,6 +157,10 @@ pub(super) fn run(a: &DiagnoseArgs, ui: Ui, out: &mut dyn Write) -> Result<(), C
     let res = diagnose_with_progress(&model, train, &val, &opts, Some(&progress));
     bar.finish_and_clear();
     let mut res = res.map_err(crate::Error::from)?;
+    if let (true, Some(fit_rows)) = (a.fix, &fit_rows) {
+        // the held-out rows are the tail of --train: refit the chosen structure on all of it
+        refit_on_all(&mut res, fit_rows, &val).map_err(crate::Error::from)?;
+    }
     res.report.model = a.model.display().to_string();
     for w in warnings.iter().rev() {
         res.report.notes.insert(0, format!("warning: {w}"));

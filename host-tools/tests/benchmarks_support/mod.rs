@@ -8,7 +8,7 @@
 use std::path::{Path, PathBuf};
 
 use lpvid_host::data::Dataset;
-use lpvid_host::diagnose::{diagnose, Options, Outcome};
+use lpvid_host::diagnose::{diagnose, refit_on_all, Options, Outcome};
 use lpvid_host::model::ModelFile;
 use lpvid_host::simulate::{run, Mode, X0};
 
@@ -90,7 +90,7 @@ pub fn run_bench(dir: &Path, b: &Bench) -> Result {
     )
     .unwrap();
     let model = ModelFile::read(&mf).unwrap();
-    let outcome = diagnose(
+    let mut outcome = diagnose(
         &model,
         &fit_part,
         &hold,
@@ -101,6 +101,9 @@ pub fn run_bench(dir: &Path, b: &Bench) -> Result {
         },
     )
     .unwrap();
+    // the held-out rows are the tail of the training rows: select on them, then refit the
+    // chosen structure on all of them (diagnose::refit_on_all)
+    refit_on_all(&mut outcome, &fit_part, &hold).unwrap();
     let mut rmse_rows = Vec::new();
     let mut vaf_rows = Vec::new();
     for &(file, lo, hi) in &b.tests {
