@@ -164,13 +164,11 @@ pub fn detect_period(slab: &Slab<'_, f64>, s: usize) -> Option<usize> {
 
 /// Multiply-adds of a kernel sweep (window columns x entries x p) from which it runs on two
 /// threads (`benches/kernel.rs`, group `kernel_sweep_threads`, one thread against two at
-/// N = 75, 250, 1000). Measured 2026-11-26 under a load average of 10-12 on the 2-core VM
-/// (other sessions building): B2 N = 75 (work 1.2e4) 66 us on one thread, 490 us on two; B3
-/// N = 250 (2.3e5) 0.87 / 1.9 ms; B1 N = 1000 p = 5 (2.5e6) 18 / 24 ms, so under that load
-/// the second thread waits for a core and loses everywhere. The threshold keeps the small
-/// sweeps on one thread at any load; that B1's sweeps gain on a quiet machine (17 ms of
-/// independent columns against a thread start of tens of microseconds) is still to be
-/// measured there.
+/// N = 75, 250, 1000). Measured 2026-11-26 at a load average of 1.5 on the 2-core VM: B1
+/// N = 1000 p = 5 (work 2.5e6) Gamma K Z 13.5 ms on one thread, 8.4 ms on two, the kernel
+/// matrix 10.4 / 9.7 ms; B2 N = 75 (1.2e4) 28 us / 106 us, so small sweeps stay on one thread.
+/// Under a load of 10-12 (other builds on both cores) the second thread waits for a core and
+/// loses even on B1 (18 / 24 ms).
 pub const SWEEP_SPLIT_MIN_WORK: f64 = 1e6;
 
 /// Threads for a sweep of `work` multiply-adds: two from [`SWEEP_SPLIT_MIN_WORK`] on when
