@@ -463,16 +463,7 @@ pub fn scheduled_output_ls(
             "the scheduled output equation's least squares is not finite".into(),
         ));
     }
-    let c: Vec<DMatrix<f64>> = (0..m).map(|i| th.columns(i * w1, n).into_owned()).collect();
-    let d: Vec<DMatrix<f64>> = (0..m)
-        .map(|i| {
-            if feedthrough {
-                th.columns(i * w1 + n, r).into_owned()
-            } else {
-                DMatrix::zeros(l, r)
-            }
-        })
-        .collect();
+    let (c, d) = split_output_theta(&th, m, w1, n, r, l, feedthrough);
     Ok(LpvSs {
         a: ss.a.clone(),
         b: ss.b.clone(),
@@ -667,16 +658,7 @@ pub fn realize_scheduled(
             row[m * w1 + j] = sig.y[(k + past, j)];
         }
     })?;
-    let c: Vec<DMatrix<f64>> = (0..m).map(|i| th.columns(i * w1, n).into_owned()).collect();
-    let d: Vec<DMatrix<f64>> = (0..m)
-        .map(|i| {
-            if feedthrough {
-                th.columns(i * w1 + n, r).into_owned()
-            } else {
-                DMatrix::zeros(l, r)
-            }
-        })
-        .collect();
+    let (c, d) = split_output_theta(&th, m, w1, n, r, l, feedthrough);
     let w2 = n + r + l;
     let mut xi = vec![0.0; w2];
     let (th2, _) = super::stats::lstsq(nb, m * w2, n, |k, row| {
@@ -1030,4 +1012,29 @@ fn fit_arx(
         noise_orders: vec![],
         sigma_p: Some(af.report.sigma_p),
     })
+}
+
+/// The output equation's least-squares coefficients `th` (l x m*w1, per scheduling function
+/// the states' n columns then the inputs' r) split into C^(i) and D^(i) (zero without
+/// feedthrough).
+fn split_output_theta(
+    th: &DMatrix<f64>,
+    m: usize,
+    w1: usize,
+    n: usize,
+    r: usize,
+    l: usize,
+    feedthrough: bool,
+) -> (Vec<DMatrix<f64>>, Vec<DMatrix<f64>>) {
+    let c = (0..m).map(|i| th.columns(i * w1, n).into_owned()).collect();
+    let d = (0..m)
+        .map(|i| {
+            if feedthrough {
+                th.columns(i * w1 + n, r).into_owned()
+            } else {
+                DMatrix::zeros(l, r)
+            }
+        })
+        .collect();
+    (c, d)
 }
