@@ -78,7 +78,7 @@ use lpvid::window::write_pbsid_regressor;
 use lpvid::{PbsidDims, Samples, Slab};
 use nalgebra::DMatrix;
 
-use super::realize::{realize_from_states, states_from_gkz};
+use super::realize::{states_from_gkz, OrderSweep};
 use crate::linalg::LinalgError;
 use crate::lpvss::{LpvSs, Signals};
 
@@ -805,6 +805,7 @@ pub fn select_by_simulation_with(
     if orders.is_empty() {
         return Err(BpdnError::NoCandidateOrder);
     }
+    let nmax = orders.iter().copied().max().unwrap_or(1);
     let mut z_last = vec![0.0; dims.q()?];
     write_pbsid_regressor(dims, slab, windows, &mut z_last);
     let cross = g.cross(y, l);
@@ -835,9 +836,15 @@ pub fn select_by_simulation_with(
             }
         };
         let mut improved = false;
+        // one pair of Grams for all orders of this point (the states of order n are the
+        // first n rows of x); a point whose Grams fail realizes at no order
+        let sweep = OrderSweep::new(dims, slab, &x.rows(0, nmax).into_owned(), feedthrough);
         for &n in &orders {
-            let states = x.rows(0, n).into_owned();
-            let Ok(model) = realize_from_states(dims, slab, &states, feedthrough) else {
+            let Ok(model) = sweep
+                .as_ref()
+                .map_err(|_| ())
+                .and_then(|s| s.realize(n).map_err(|_| ()))
+            else {
                 continue;
             };
             // the error at which this order's score would reach the best so far (with a
