@@ -222,10 +222,18 @@ fn check_order(
             Err(_) => return Ok((fit, opts.clone(), None)),
         },
     };
+    // with a validation file and no --refine the fit's own model is the gap order's
+    // realization from these candidates (same regression, same states, same least
+    // squares): it is scored as it is instead of realized again
+    let own_is_n0 = val.is_some() && !opts.refine;
     let err = |o: usize| -> Option<f64> {
-        let f = cands.realize(fit_sig, &op_check, Some(o)).ok()?;
+        let model = if own_is_n0 && o == n0 {
+            fit.model.clone()
+        } else {
+            cands.realize(fit_sig, &op_check, Some(o)).ok()?.model
+        };
         let mf = ModelFile {
-            kind: ModelKind::Ss(f.model),
+            kind: ModelKind::Ss(model),
             signals: map.clone(),
             fit: Value::Null,
         };

@@ -6,7 +6,7 @@
 
 use lpvid::window::write_pbsid_regressor;
 use lpvid::{stat_vector_len, write_stat_vector, Gram, PbsidDims, Slab, StatsLayout};
-use nalgebra::{DMatrix, DVector};
+use nalgebra::DMatrix;
 
 use super::error::FitError;
 use super::realize::{gamma_k, svd_left};
@@ -70,13 +70,37 @@ pub(crate) fn primal_states(
     )?;
     let stats = dense(&gram, len);
     let (reg, sv, t) = primal_regression_svd(dims, f, &stats, windows, opts)?;
+    // x_{k+p} = T z_k^p, one dot product per state row (the rows of T contiguous: T^T's
+    // columns) without a temporary per window
+    let tt = t.transpose();
     let mut x = DMatrix::zeros(t.nrows(), windows + 1);
     let mut z = vec![0.0; q];
     for k in 0..=windows {
         write_pbsid_regressor(dims, slab, k, &mut z);
-        x.set_column(k, &(&t * DVector::from_column_slice(&z)));
+        for (i, row) in tt.column_iter().enumerate() {
+            x[(i, k)] = dot(row.as_slice(), &z);
+        }
     }
     Ok((sv, x, reg))
+}
+
+/// a . b with four partial sums (vectorised; the summation order differs from a plain loop
+/// only by rounding).
+fn dot(a: &[f64], b: &[f64]) -> f64 {
+    let mut acc = [0.0f64; 4];
+    let (ca, cb) = (a.chunks_exact(4), b.chunks_exact(4));
+    let tail: f64 = ca
+        .remainder()
+        .iter()
+        .zip(cb.remainder())
+        .map(|(x, y)| x * y)
+        .sum();
+    for (x, y) in ca.zip(cb) {
+        for ((s, u), v) in acc.iter_mut().zip(x).zip(y) {
+            *s += u * v;
+        }
+    }
+    (acc[0] + acc[1]) + (acc[2] + acc[3]) + tail
 }
 
 /// The dense symmetric matrix of a Gram's leading `len` rows and columns.
