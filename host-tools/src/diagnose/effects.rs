@@ -1668,6 +1668,41 @@ pub fn cv_agree(held_explained: f64, folds: &[(f64, f64)]) -> bool {
     agree + 1 >= k
 }
 
+/// A variant's held-out loss `loss1` against a null's `loss0` (same mode): the explained
+/// fraction and the one-sided p-value of the batch log-ratio t test (the module's noise
+/// threshold test).
+pub fn versus(loss0: &[f64], loss1: &[f64]) -> (f64, f64) {
+    if loss1.len() != loss0.len() || loss1.iter().any(|v| !v.is_finite()) {
+        return (f64::NEG_INFINITY, 1.0);
+    }
+    let m0 = loss0.iter().sum::<f64>();
+    let m1 = loss1.iter().sum::<f64>();
+    let explained = if m0 > 0.0 { (m0 - m1) / m0 } else { 0.0 };
+    let ratios = batch_log_ratios(loss0, loss1, batch_count(loss0.len()));
+    if ratios.is_empty() {
+        return (explained, 1.0);
+    }
+    let (t, nu) = mean_t(&ratios);
+    (explained, t_sf(t, nu))
+}
+
+/// Whether a variant judged against its own null ([`Candidate::null`]: the BC-IV path's
+/// LPV-ARX fit, the refined structure of an own-output candidate) also improves on the null
+/// refit of the model's own structure, which its fix would replace: on a long held-out record
+/// with the evidence a finding needs ([`significant`], at the same Bonferroni level), on a
+/// short one (whose held-out t test alone cannot pass that level, [`SHORT_BATCHES`]) at least
+/// a lower held-out error. `vs_user` is [`versus`] of the model's null refit and the variant.
+/// Without it a BC-IV correction that explained 100 % of its own LPV-ARX null's error was
+/// applied to a seed-3000 output-offset plant of the family and made the user's LPV-SS
+/// model's held-out error 6.7 times worse (docs/bench-diagnose.md).
+pub fn beats_user(vs_user: (f64, f64), tried: usize, short: bool) -> bool {
+    if short {
+        vs_user.0 > 0.0
+    } else {
+        significant(vs_user.0, vs_user.1, tried)
+    }
+}
+
 /// Whether a scored variant is above the noise threshold with `tried` variants in all.
 pub fn significant(explained: f64, p_value: f64, tried: usize) -> bool {
     explained >= MIN_EXPLAINED && p_value < ALPHA / tried.max(1) as f64

@@ -605,8 +605,23 @@ pub fn diagnose_with_progress(
                 effects::replicated(r)
             }
         };
+        // a variant with its own null replaces the model's structure when applied: it must
+        // also beat the null refit of that structure (effects::beats_user)
+        let vs_user: Vec<Option<(f64, f64)>> = best
+            .iter()
+            .map(|b| {
+                let s = &scored[b.1];
+                s.cand.null.as_ref()?;
+                let mode = s.cand.effect.metric();
+                let e = s.eval.as_ref()?;
+                Some(effects::versus(&base_eval.loss(mode), &e.loss(mode)))
+            })
+            .collect();
+        let user_ok = |j: usize| vs_user[j].is_none_or(|v| effects::beats_user(v, tried, short));
         let sig: Vec<bool> = (0..best.len())
-            .map(|j| full_sig[j] && replication[j].as_ref().is_none_or(|r| rep_ok(j, r)))
+            .map(|j| {
+                full_sig[j] && replication[j].as_ref().is_none_or(|r| rep_ok(j, r)) && user_ok(j)
+            })
             .collect();
         // a noise model cannot explain the part of the residual an input-driven effect does
         let det_best = best
@@ -686,6 +701,12 @@ pub fn diagnose_with_progress(
                 )
             } else if f.p_value >= p_max {
                 format!("p = {:.2e} is not below {p_max:.1e}", f.p_value)
+            } else if let Some(v) = j.filter(|j| !user_ok(*j)).and_then(|j| vs_user[j]) {
+                format!(
+                    "it is judged against its own null; against the refit of the model's own structure it explains {:.1} % of the held-out error (p = {:.2e}), and a fix must improve on that model",
+                    100.0 * v.0,
+                    v.1
+                )
             } else if let Some((_, r)) = rep.filter(|(j, r)| !rep_ok(*j, r)).filter(|_| short) {
                 format!(
                     "its cross-validation folds disagree (held out: explains {:.1} %; refit without each training block and scored on it: {}; all folds but one need explained > 0)",

@@ -200,6 +200,10 @@ fn draw(effect: &str, seed: u64, n: usize, rng: &mut StdRng) -> Option<FamilyCas
     let slowest = radius(&a[0]).max(0.1);
     let mut past = ((0.05f64).ln() / slowest.ln()).ceil() as usize;
     past = past.clamp(3, if scheduled { 7 } else { 15 });
+    // at least order + 1: PBSID's Gamma K Z has `past` block rows, so a past window of `order`
+    // or less gives fewer singular values than states (seed 3003: order 4, fast poles, past 3,
+    // no model at all)
+    past = past.max(order + 1);
     let mut args: Vec<String> = vec![];
     if !matches!(effect, "order-too-low" | "coloured-noise") {
         args.extend(["--order".to_string(), order.to_string()]);
@@ -625,5 +629,24 @@ mod tests {
             }
         }
         assert!(family_case("no-such-effect", 0, 10).is_err());
+    }
+
+    #[test]
+    fn past_window_exceeds_the_users_order() {
+        // seed 3003 drew an order-4 plant with poles of radius <= 0.11: past 3 before
+        let arg = |c: &FamilyCase, name: &str| -> usize {
+            let i = c.pbsid_args.iter().position(|a| a == name).unwrap();
+            c.pbsid_args[i + 1].parse().unwrap()
+        };
+        let mut saw_order_4 = false;
+        for e in FAMILY_EFFECTS {
+            for seed in [0, 1, 2, 3003] {
+                let c = family_case(e, seed, 100).unwrap();
+                let (past, order) = (arg(&c, "--past"), arg(&c, "--order"));
+                assert!(past > order, "{e} {seed}: past {past}, order {order}");
+                saw_order_4 |= order == 4 && seed == 3003;
+            }
+        }
+        assert!(saw_order_4);
     }
 }
