@@ -125,6 +125,24 @@ pub fn scheduled(mats: &[DMatrix<f64>], mu: &DVector<f64>) -> DMatrix<f64> {
 }
 
 impl LpvSs {
+    /// The model from the state equation's stacked parameters
+    /// `theta = [A^(1) B^(1) K^(1) | ... | A^(m) B^(m) K^(m)]` (kernel paper, eq. (1): n rows,
+    /// m blocks of n + r + l columns) and the output matrices `c`, `d` (one, or one per
+    /// scheduling function). The one place where a least-squares solution becomes A, B, K.
+    pub fn from_abk(theta: &DMatrix<f64>, c: Vec<DMatrix<f64>>, d: Vec<DMatrix<f64>>) -> Self {
+        let (n, l, r) = (theta.nrows(), c[0].nrows(), d[0].ncols());
+        let w = n + r + l;
+        let m = theta.ncols() / w;
+        let block = |i: usize, o: usize, cols: usize| theta.columns(i * w + o, cols).into_owned();
+        LpvSs {
+            a: (0..m).map(|i| block(i, 0, n)).collect(),
+            b: (0..m).map(|i| block(i, n, r)).collect(),
+            k: (0..m).map(|i| block(i, n + r, l)).collect(),
+            c,
+            d,
+        }
+    }
+
     /// State dimension n.
     pub fn n(&self) -> usize {
         self.a[0].nrows()

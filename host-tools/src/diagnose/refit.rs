@@ -672,20 +672,7 @@ pub fn realize_scheduled(
         kron_mu(&mu, &xi, &mut row[..m * w2]);
         row[m * w2..].copy_from_slice(states.column(k + 1).as_slice());
     })?;
-    let mut ss = LpvSs {
-        a: vec![],
-        b: vec![],
-        k: vec![],
-        c,
-        d,
-    };
-    for i in 0..m {
-        let o = i * w2;
-        ss.a.push(th2.columns(o, n).into_owned());
-        ss.b.push(th2.columns(o + n, r).into_owned());
-        ss.k.push(th2.columns(o + n + r, l).into_owned());
-    }
-    Ok(ss)
+    Ok(LpvSs::from_abk(&th2, c, d))
 }
 
 /// Add the constant input channels `const_idx` (of the full input list of `sig`) to a model

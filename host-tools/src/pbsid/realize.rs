@@ -80,24 +80,9 @@ pub(crate) fn solve_abk(
     d: DMatrix<f64>,
     m: usize,
 ) -> Result<LpvSs, FitError> {
-    let (l, n) = (c.nrows(), c.ncols());
-    let r = d.ncols();
-    let nxi = n + r + l;
     let (abk, _) = min_norm_from_normal(s_ff, &s_fy.transpose(), 1e-12)?;
-    let mut model = LpvSs {
-        a: vec![],
-        b: vec![],
-        k: vec![],
-        c: vec![c],
-        d: vec![d],
-    };
-    for i in 0..m {
-        let o = i * nxi;
-        model.a.push(abk.columns(o, n).into_owned());
-        model.b.push(abk.columns(o + n, r).into_owned());
-        model.k.push(abk.columns(o + n + r, l).into_owned());
-    }
-    Ok(model)
+    debug_assert_eq!(abk.ncols(), m * (c.ncols() + d.ncols() + c.nrows()));
+    Ok(LpvSs::from_abk(&abk, vec![c], vec![d]))
 }
 
 /// Section 4.3 with the states at hand: `states` column k is x_{k+p} of window k, for
@@ -449,20 +434,7 @@ impl OrderSweep {
                 .sum()
         });
         let abk = solve_normal(&s2_ff, &s2_fy)?;
-        let mut model = LpvSs {
-            a: vec![],
-            b: vec![],
-            k: vec![],
-            c: vec![c],
-            d: vec![d],
-        };
-        for i in 0..m {
-            let o = i * nxi;
-            model.a.push(abk.columns(o, n).into_owned());
-            model.b.push(abk.columns(o + n, r).into_owned());
-            model.k.push(abk.columns(o + n + r, l).into_owned());
-        }
-        Ok(model)
+        Ok(LpvSs::from_abk(&abk, vec![c], vec![d]))
     }
 }
 
