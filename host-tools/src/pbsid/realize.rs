@@ -100,12 +100,7 @@ pub fn realize_from_states(
     let n = states.nrows();
     let nb = states.ncols() - 1;
     let r_ft = if feedthrough { r } else { 0 };
-    let dcd = n + r_ft + l;
-    let g1 = batched_gram(dcd, nb, |k, row| {
-        row[..n].copy_from_slice(states.column(k).as_slice());
-        row[n..n + r_ft].copy_from_slice(&slab.u(k + p)[..r_ft]);
-        row[n + r_ft..].copy_from_slice(slab.y(k + p));
-    })?;
+    let g1 = output_gram(p, slab, states, r_ft)?;
     let (s1_ff, s1_fy) = split_gram(&g1, n + r_ft);
     let (c, d) = solve_cd(&s1_ff, &s1_fy, n, r, feedthrough)?;
     let nxi = n + r + l;
@@ -139,6 +134,24 @@ pub fn realize_from_states(
     })?;
     let (s2_ff, s2_fy) = split_gram(&g2, m * nxi);
     solve_abk(&s2_ff, &s2_fy, c, d, m)
+}
+
+/// The Gram of the output equation's rows [x_k; u_k (first `r_ft`); y_k] over the windows
+/// of `states` (section 4.3 with eq. (2)): shared by [`realize_from_states`] and
+/// [`OrderSweep`].
+fn output_gram(
+    p: usize,
+    slab: &Slab<'_, f64>,
+    states: &DMatrix<f64>,
+    r_ft: usize,
+) -> Result<Gram<f64, Vec<f64>>, lpvid::Error> {
+    let n = states.nrows();
+    let dim = n + r_ft + slab.y(p).len();
+    batched_gram(dim, states.ncols() - 1, |k, row| {
+        row[..n].copy_from_slice(states.column(k).as_slice());
+        row[n..n + r_ft].copy_from_slice(&slab.u(k + p)[..r_ft]);
+        row[n + r_ft..].copy_from_slice(slab.y(k + p));
+    })
 }
 
 /// Rows per batch update of [`realize_from_states`]' normal equations.
@@ -343,12 +356,7 @@ impl OrderSweep {
         let nmax = states.nrows();
         let nb = states.ncols() - 1;
         let r_ft = if feedthrough { r } else { 0 };
-        let d1 = nmax + r_ft + l;
-        let g1 = batched_gram(d1, nb, |k, row| {
-            row[..nmax].copy_from_slice(states.column(k).as_slice());
-            row[nmax..nmax + r_ft].copy_from_slice(&slab.u(k + p)[..r_ft]);
-            row[nmax + r_ft..].copy_from_slice(slab.y(k + p));
-        })?;
+        let g1 = output_gram(p, slab, states, r_ft)?;
         let dv = nmax + r + l;
         let mut v = vec![0.0; dv];
         let g2 = batched_gram(m * dv + nmax, nb, |k, row| {
