@@ -478,6 +478,7 @@ pub fn basis_products(signals: &[Vec<Factor>], ng: usize) -> Result<Vec<Vec<Fact
                         && g.delay == f.delay
                         && g.func == f.func
                         && g.omega == f.omega
+                        && g.smooth == f.smooth
                         && g.pow.fract() == 0.0
                         && pow.fract() == 0.0
                 }) {

@@ -66,6 +66,14 @@ pub struct Factor {
     /// Angular frequency for `sin`/`cos` (rad per unit of the column; 1 when absent).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub omega: Option<f64>,
+    /// Causal first-order low-pass of the data column, JSON key `"smooth"`, applied first
+    /// (before delay, fn and pow): s(k) = a s(k-1) + (1 - a) x(k) with pole a in [0, 1),
+    /// started at s(0) = x(0) so the start is not pulled towards 0 (a noisy scheduling
+    /// sensor; `diagnose`'s scheduling-noise correction). Absent = no smoothing. Refused on
+    /// `"k"` and on the model's own output (a free run would have to carry the filter's
+    /// state through the loop; [`SignalMap::check`]).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub smooth: Option<f64>,
 }
 
 impl Factor {
@@ -77,12 +85,13 @@ impl Factor {
             delay: 0,
             func: None,
             omega: None,
+            smooth: None,
         }
     }
 
-    /// Is this factor the plain column (power 1, no delay, no function)?
+    /// Is this factor the plain column (power 1, no delay, no function, no smoothing)?
     pub fn is_plain(&self) -> bool {
-        self.pow == 1.0 && self.delay == 0 && self.func.is_none()
+        self.pow == 1.0 && self.delay == 0 && self.func.is_none() && self.smooth.is_none()
     }
 
     /// Check the factor on its own (a column name, a finite power, `omega` only with
@@ -93,6 +102,19 @@ impl Factor {
         }
         if !self.pow.is_finite() {
             return Err(format!("\"pow\" {} is not finite", self.pow));
+        }
+        if let Some(a) = self.smooth {
+            if !(0.0..1.0).contains(&a) {
+                return Err(format!(
+                    "\"smooth\" {a} is not a low-pass pole in [0, 1) (s(k) = a s(k-1) + (1 - a) x(k))"
+                ));
+            }
+            if self.col == SAMPLE_INDEX {
+                return Err(
+                    "\"smooth\" does not apply to the sample index \"k\": smooth a data column"
+                        .into(),
+                );
+            }
         }
         match (self.func, self.omega) {
             (Some(FactorFn::Sin | FactorFn::Cos), Some(w)) if !w.is_finite() => {
@@ -135,14 +157,28 @@ impl Factor {
         }
     }
 
-    /// The factor in words, e.g. `abs(u1(k-2))^2`, `sin(0.3*k)` or `y1^0.5`.
+    /// The column's values as the factor reads them before the delay: the data as they are,
+    /// or their causal low-pass s(k) = a s(k-1) + (1 - a) x(k), s(0) = x(0), with `"smooth": a`.
+    pub fn smoothed<'d>(&self, data: &'d [f64]) -> std::borrow::Cow<'d, [f64]> {
+        match self.smooth {
+            None => std::borrow::Cow::Borrowed(data),
+            Some(a) => std::borrow::Cow::Owned(low_pass(data, a)),
+        }
+    }
+
+    /// The factor in words, e.g. `abs(u1(k-2))^2`, `sin(0.3*k)`, `y1^0.5` or
+    /// `lowpass0.8(p1)(k-1)` (`"smooth": 0.8`, then the delay).
     pub fn describe(&self) -> String {
+        let col = match self.smooth {
+            Some(a) => format!("lowpass{a}({})", self.col),
+            None => self.col.clone(),
+        };
         let base = if self.delay == 0 {
-            self.col.clone()
+            col
         } else if self.col == SAMPLE_INDEX {
             format!("(k-{})", self.delay)
         } else {
-            format!("{}(k-{})", self.col, self.delay)
+            format!("{col}(k-{})", self.delay)
         };
         let w = self.omega.unwrap_or(1.0);
         let trig = |name: &str| {
@@ -167,6 +203,19 @@ impl Factor {
         }
         s
     }
+}
+
+/// The causal first-order low-pass s(k) = a s(k-1) + (1 - a) x(k) of `x`, started at
+/// s(0) = x(0) (a unit-gain filter: a constant passes unchanged, and the first samples are not
+/// pulled towards 0 as from s(-1) = 0). The factor key `"smooth": a` ([`Factor::smooth`]).
+pub fn low_pass(x: &[f64], a: f64) -> Vec<f64> {
+    let mut s = x.first().copied().unwrap_or(0.0);
+    x.iter()
+        .map(|&v| {
+            s = a * s + (1.0 - a) * v;
+            s
+        })
+        .collect()
 }
 
 /// A product of factors in words (`1` for the empty product).
@@ -205,8 +254,9 @@ pub fn eval_product(product: &[Factor], ds: &Dataset, role: &str) -> Result<Vec<
                 )
             })?)
         };
+        let data = data.map(|d| f.smoothed(d));
         for (k, o) in out.iter_mut().enumerate() {
-            let v = match (k.checked_sub(f.delay), data) {
+            let v = match (k.checked_sub(f.delay), &data) {
                 (None, _) => 0.0,
                 (Some(j), None) => j as f64,
                 (Some(j), Some(d)) => d[j],
@@ -334,12 +384,41 @@ impl SignalMap {
         ] {
             for (i, prod) in list.iter().enumerate() {
                 for (j, f) in prod.iter().enumerate() {
-                    f.check()
-                        .map_err(|m| Loc::new(vec![key(name), Seg::Index(i), Seg::Index(j)], m))?;
+                    let at = || vec![key(name), Seg::Index(i), Seg::Index(j)];
+                    f.check().map_err(|m| Loc::new(at(), m))?;
+                    if f.smooth.is_some() && name != "outputs" && self.own_output(f).is_some() {
+                        return Err(Loc::new(
+                            at(),
+                            format!(
+                                "\"smooth\" on the model's own output {} is not supported: a free run \
+                                 would have to carry the filter's state through the output loop; \
+                                 smooth a data column, or read {0} without \"smooth\"",
+                                f.col
+                            ),
+                        ));
+                    }
                 }
             }
         }
         Ok(())
+    }
+
+    /// The first factor with `"smooth"` (its place, e.g. `scheduling[1][0]`), if any: for the
+    /// consumers that cannot evaluate the low-pass and must refuse the model (the device's
+    /// predictor reads its channels sample by sample, unfiltered).
+    pub fn first_smoothed(&self) -> Option<String> {
+        for (name, list) in [
+            ("inputs", &self.inputs),
+            ("scheduling", &self.scheduling),
+            ("outputs", &self.outputs),
+        ] {
+            for (i, prod) in list.iter().enumerate() {
+                if let Some(j) = prod.iter().position(|f| f.smooth.is_some()) {
+                    return Some(format!("{name}[{i}][{j}]"));
+                }
+            }
+        }
+        None
     }
 
     /// The model's signals on `ds`: u (N x r), y (N x l) and p (N x (m-1), the scheduling
@@ -791,6 +870,9 @@ impl ModelFile {
                     if f.omega.is_some_and(|w| !w.is_finite()) {
                         return Some(format!("{name}[{i}][{j}].omega"));
                     }
+                    if f.smooth.is_some_and(|a| !a.is_finite()) {
+                        return Some(format!("{name}[{i}][{j}].smooth"));
+                    }
                 }
             }
         }
@@ -1002,7 +1084,7 @@ fn products(v: &Value, path: &[Seg]) -> Result<Vec<Vec<Factor>>, Loc> {
             let fac: Factor = serde_json::from_value(f.clone()).map_err(|e| {
                 Loc::new(
                     fp.clone(),
-                    format!("not a factor {{\"col\", \"pow\", \"delay\", \"fn\", \"omega\"}}: {e}"),
+                    format!("not a factor {{\"col\", \"pow\", \"delay\", \"fn\", \"omega\", \"smooth\"}}: {e}"),
                 )
             })?;
             fs.push(fac);
@@ -1536,6 +1618,9 @@ fn factor_text(f: &Factor) -> String {
     );
     if let Some(w) = f.omega {
         let _ = write!(s, ", \"omega\": {}", Value::from(w));
+    }
+    if let Some(a) = f.smooth {
+        let _ = write!(s, ", \"smooth\": {}", Value::from(a));
     }
     s.push('}');
     s
@@ -2315,5 +2400,134 @@ mod tests {
                 arx: false
             })
         );
+    }
+
+    /// The model file with its scheduling function 2 = `p1` smoothed by `smooth` (JSON text).
+    fn smooth_text(col: &str, smooth: &str) -> String {
+        SS.replace(
+            "\"type\": \"lpv-ss\",",
+            &format!(
+                "\"type\": \"lpv-ss\",\n  \"scheduling\": [[], [{{\"col\": \"{col}\", \"smooth\": {smooth}}}]],"
+            ),
+        )
+    }
+
+    #[test]
+    fn smoothed_factor_reads_round_trips_and_filters() {
+        let m = ModelFile::from_json_str("m.json", &smooth_text("p1", "0.5")).unwrap();
+        let g = &m.signals.scheduling[1][0];
+        assert_eq!(g.smooth, Some(0.5));
+        assert!(!g.is_plain());
+        assert_eq!(describe(&m.signals.scheduling[1]), "lowpass0.5(p1)");
+        let text = m.to_json_string();
+        assert!(
+            text.contains(
+                "{\"col\": \"p1\", \"pow\": 1, \"delay\": 0, \"fn\": null, \"smooth\": 0.5}"
+            ),
+            "{text}"
+        );
+        assert_eq!(ModelFile::from_json_str("x", &text).unwrap(), m);
+        // s(0) = x(0), then s(k) = 0.5 s(k-1) + 0.5 x(k); before delay, fn and pow
+        let d = ds("u1,y1,p1\n1,0,2\n1,0,4\n1,0,0\n1,0,8\n");
+        let s = m.signals.evaluate(&d).unwrap();
+        assert_eq!(
+            s.p.column(0).iter().copied().collect::<Vec<_>>(),
+            [2.0, 3.0, 1.5, 4.75]
+        );
+        let h = Factor {
+            smooth: Some(0.5),
+            delay: 1,
+            pow: 2.0,
+            ..Factor::col("p1")
+        };
+        assert_eq!(describe(std::slice::from_ref(&h)), "lowpass0.5(p1)(k-1)^2");
+        let v = eval_product(&[h], &d, "x").unwrap();
+        assert_eq!(v, [0.0, 4.0, 9.0, 2.25]);
+        // a constant passes unchanged (unit gain, started at the first value)
+        assert_eq!(low_pass(&[3.0; 4], 0.9), [3.0; 4]);
+        assert!(low_pass(&[], 0.9).is_empty());
+        // an old file without the key reads and writes as before
+        let old = ModelFile::from_json_str("m.json", SS).unwrap();
+        assert!(!old.to_json_string().contains("smooth"));
+        assert_eq!(old.signals.first_smoothed(), None);
+        assert_eq!(
+            m.signals.first_smoothed().as_deref(),
+            Some("scheduling[1][0]")
+        );
+    }
+
+    #[test]
+    fn smoothing_where_it_cannot_be_evaluated_is_refused() {
+        for bad in ["1", "1.5", "-0.1"] {
+            err(
+                &smooth_text("p1", bad),
+                3,
+                "is not a low-pass pole in [0, 1)",
+            );
+        }
+        err(&smooth_text("p1", "\"x\""), 3, "not a factor");
+        err(
+            &smooth_text("k", "0.5"),
+            3,
+            "\"smooth\" does not apply to the sample index \"k\"",
+        );
+        // the model's own output: a free run cannot carry the filter through the loop
+        let own = smooth_text("y1", "0.5").replace(
+            "\"scheduling\"",
+            "\"outputs\": [[{\"col\": \"y1\"}]],\n  \"scheduling\"",
+        );
+        let e = err(
+            &own,
+            4,
+            "\"smooth\" on the model's own output y1 is not supported",
+        );
+        assert!(e.message.contains("scheduling[1][0]"), "{e}");
+        // a smoothed output product is not an own output: a factor on y1 then reads data
+        let m = SignalMap {
+            inputs: vec![vec![Factor::col("u1")]],
+            scheduling: vec![
+                vec![],
+                vec![Factor {
+                    smooth: Some(0.2),
+                    ..Factor::col("y1")
+                }],
+            ],
+            outputs: vec![vec![Factor {
+                smooth: Some(0.2),
+                ..Factor::col("y1")
+            }]],
+        };
+        assert!(m.check().is_ok());
+        assert!(!m.has_feedback());
+    }
+
+    proptest::proptest! {
+        /// Any pole in [0, 1) on any data column reads back exactly and evaluates to the
+        /// recursion; any value outside is refused with the key named.
+        #[test]
+        fn smooth_key_parses_exactly(a in -2.0f64..2.0, x in proptest::collection::vec(-1e3f64..1e3, 1..12)) {
+            let text = smooth_text("p1", &Value::from(a).to_string());
+            match ModelFile::from_json_str("m.json", &text) {
+                Ok(m) => {
+                    proptest::prop_assert!((0.0..1.0).contains(&a));
+                    let g = &m.signals.scheduling[1][0];
+                    proptest::prop_assert_eq!(g.smooth, Some(a));
+                    let back = ModelFile::from_json_str("x", &m.to_json_string()).unwrap();
+                    proptest::prop_assert_eq!(&back, &m);
+                    let csv: String = x.iter().map(|v| format!("1,0,{v}\n")).collect();
+                    let d = ds(&format!("u1,y1,p1\n{csv}"));
+                    let p = m.signals.evaluate(&d).unwrap().p;
+                    let mut s = x[0];
+                    for (k, v) in x.iter().enumerate() {
+                        s = a * s + (1.0 - a) * v;
+                        proptest::prop_assert_eq!(p[(k, 0)], s);
+                    }
+                }
+                Err(e) => {
+                    proptest::prop_assert!(!(0.0..1.0).contains(&a));
+                    proptest::prop_assert!(e.message.contains("\"smooth\""), "{}", e);
+                }
+            }
+        }
     }
 }

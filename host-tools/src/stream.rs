@@ -12,7 +12,8 @@
 //!   factors of the signal map read the rows kept from the chunk before, and a free run
 //!   through own-output feedback the outputs kept from it
 //!   ([`crate::simulate::free_run_ss_into`], the in-memory run's loop). Left to the
-//!   in-memory path: lpv-arx models and factors on the sample index (`run_streamable`).
+//!   in-memory path: lpv-arx models, factors on the sample index and smoothed factors
+//!   (`"smooth"`, a low-pass over the whole record) (`run_streamable`).
 //!
 //! All of them run the one simulation step ([`crate::lpvss::LpvSs::output_into`] and
 //! [`crate::lpvss::LpvSs::state_into`], struct `ChunkRun`), so the outputs equal the
@@ -522,8 +523,10 @@ pub fn identify_streaming_chunks(
 
 /// Why the streamed validate/simulate hands a model to the in-memory path, if it does:
 /// an lpv-arx model (its recursion, [`crate::simulate::arx_run_from`], reads the whole
-/// record); a factor on the sample index `k`; a delay longer than [`CHUNK_ROWS`] (the rows
-/// kept for it) and the chunk.
+/// record); a factor on the sample index `k`; a factor with `"smooth"` (its low-pass starts
+/// at the record's first sample and runs through every row, which a chunk evaluated after a
+/// few kept rows would restart); a delay longer than [`CHUNK_ROWS`] (the rows kept for it)
+/// and the chunk.
 /// Otherwise the model and the longest delay of its signal map.
 fn run_streamable(model: &ModelFile, chunk_rows: usize) -> Option<(&LpvSs, usize)> {
     let ModelKind::Ss(ss) = &model.kind else {
@@ -538,7 +541,7 @@ fn run_streamable(model: &ModelFile, chunk_rows: usize) -> Option<(&LpvSs, usize
         .chain(&map.outputs)
         .flatten()
     {
-        if f.col == SAMPLE_INDEX {
+        if f.col == SAMPLE_INDEX || f.smooth.is_some() {
             return None;
         }
         delay = delay.max(f.delay);

@@ -255,6 +255,14 @@ fn local_inputs(a: &DeviceArgs) -> Result<Local, CliError> {
             };
             m.validate()
                 .map_err(|e| CliError::Invalid(format!("{}: {e}", p.model.display())))?;
+            if let Some(at) = mf.signals.first_smoothed() {
+                return Err(CliError::Invalid(format!(
+                    "{}: {at}: \"smooth\" (a low-pass of a data column) is not run by the device \
+                     predictor, which reads its channels unfiltered; refit without \"smooth\" or \
+                     filter the channel before it reaches the device",
+                    p.model.display()
+                )));
+            }
             Local::Push(mf)
         }
         DeviceAction::Pull(p) => {

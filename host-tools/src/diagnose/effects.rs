@@ -438,6 +438,7 @@ fn fac(col: &str, pow: i32, delay: usize, func: Option<FactorFn>) -> Factor {
         delay,
         func,
         omega: None,
+        smooth: None,
     }
 }
 
