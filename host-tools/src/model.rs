@@ -403,18 +403,30 @@ impl SignalMap {
         Ok(())
     }
 
-    /// The first factor with `"smooth"` (its place, e.g. `scheduling[1][0]`), if any: for the
-    /// consumers that cannot evaluate the low-pass and must refuse the model (the device's
-    /// predictor reads its channels sample by sample, unfiltered).
-    pub fn first_smoothed(&self) -> Option<String> {
-        for (name, list) in [
-            ("inputs", &self.inputs),
-            ("scheduling", &self.scheduling),
-            ("outputs", &self.outputs),
+    /// The first signal that differs from the plain map [`SignalMap::standard`] of the same
+    /// counts (its place, e.g. `scheduling[1]`, and what it is against what the plain map
+    /// reads there), if any. The device's predictor reads its frame's channels u1.., y1..,
+    /// p1.. as they come, so a model that needs anything else (a power, a delay, a function,
+    /// a low-pass, an own-output feedback, another column) cannot run there and is refused
+    /// before it is pushed.
+    pub fn first_non_standard(&self) -> Option<String> {
+        let plain = SignalMap::standard(
+            self.inputs.len(),
+            self.outputs.len(),
+            self.scheduling.len().saturating_sub(1),
+        );
+        for (name, list, want) in [
+            ("inputs", &self.inputs, &plain.inputs),
+            ("scheduling", &self.scheduling, &plain.scheduling),
+            ("outputs", &self.outputs, &plain.outputs),
         ] {
-            for (i, prod) in list.iter().enumerate() {
-                if let Some(j) = prod.iter().position(|f| f.smooth.is_some()) {
-                    return Some(format!("{name}[{i}][{j}]"));
+            for (i, (prod, w)) in list.iter().zip(want).enumerate() {
+                if prod != w {
+                    return Some(format!(
+                        "{name}[{i}] is {} where the device reads {}",
+                        describe(prod),
+                        describe(w)
+                    ));
                 }
             }
         }
@@ -2449,10 +2461,10 @@ mod tests {
         // an old file without the key reads and writes as before
         let old = ModelFile::from_json_str("m.json", SS).unwrap();
         assert!(!old.to_json_string().contains("smooth"));
-        assert_eq!(old.signals.first_smoothed(), None);
+        assert_eq!(old.signals.first_non_standard(), None);
         assert_eq!(
-            m.signals.first_smoothed().as_deref(),
-            Some("scheduling[1][0]")
+            m.signals.first_non_standard().as_deref(),
+            Some("scheduling[1] is lowpass0.5(p1) where the device reads p1")
         );
     }
 

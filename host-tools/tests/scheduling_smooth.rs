@@ -116,7 +116,7 @@ fn streamed_validate_and_simulate_hand_smoothing_to_the_in_memory_path() {
 }
 
 #[test]
-fn the_device_push_refuses_a_smoothed_model_naming_the_factor() {
+fn the_device_push_refuses_a_non_plain_signal_map_naming_the_signal() {
     let dir = tempfile::tempdir().unwrap();
     let mp = dir.path().join("m.json");
     model(Some(0.6)).write(&mp).unwrap();
@@ -133,7 +133,25 @@ fn the_device_push_refuses_a_smoothed_model_naming_the_factor() {
         .unwrap_err()
         .to_string();
     assert!(
-        e.contains("scheduling[1][0]") && e.contains("\"smooth\"") && e.contains("device"),
+        e.contains("scheduling[1] is lowpass0.6(p1) where the device reads p1")
+            && e.contains("\"smooth\"")
+            && e.contains("device"),
+        "{e}"
+    );
+    // any other signal the device's frame does not carry as it is: an own-output feedback
+    // channel y1^3 in place of u1 (before, only "smooth" was refused and such a model was
+    // pushed and run on the raw u1)
+    let mut cubic = model(None);
+    cubic.signals.inputs[0] = vec![Factor {
+        pow: 3.0,
+        ..Factor::col("y1")
+    }];
+    cubic.write(&mp).unwrap();
+    let e = cli::run(args.iter().map(|s| s.to_string()), &mut sink)
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("inputs[0] is y1^3 where the device reads u1"),
         "{e}"
     );
     // the plain model gets past the file check to the port

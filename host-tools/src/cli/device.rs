@@ -255,11 +255,12 @@ fn local_inputs(a: &DeviceArgs) -> Result<Local, CliError> {
             };
             m.validate()
                 .map_err(|e| CliError::Invalid(format!("{}: {e}", p.model.display())))?;
-            if let Some(at) = mf.signals.first_smoothed() {
+            if let Some(at) = mf.signals.first_non_standard() {
                 return Err(CliError::Invalid(format!(
-                    "{}: {at}: \"smooth\" (a low-pass of a data column) is not run by the device \
-                     predictor, which reads its channels unfiltered; refit without \"smooth\" or \
-                     filter the channel before it reaches the device",
+                    "{}: signal map: {at}: the device predictor reads its frame's channels \
+                     u1.., y1.., p1.. unchanged (no power, delay, function, \"smooth\" or \
+                     own-output factor); push a model with the plain map, or compute the \
+                     signal before it reaches the device",
                     p.model.display()
                 )));
             }
