@@ -1738,3 +1738,88 @@ pub fn model_of(s: &Scored) -> Option<&ModelFile> {
 pub fn is_arx(m: &ModelFile) -> bool {
     matches!(m.kind, ModelKind::Arx(_))
 }
+
+/// The model's own structure refit with a larger past window (same order setting, same
+/// signals, same regularisation): the `order-too-low` variant "past window p + 2" of
+/// [`candidates`], which a careful user would try first when the held-out error looks biased.
+/// A finding must also beat it ([`beats_larger`]). A past window p truncates the
+/// predictor's memory of the plant at lag p; when the plant's (frozen) dynamics are slower,
+/// the user's refit is biased, and that bias gets credited to whichever effect absorbs it
+/// best: on the family's clean scheduled plants an offset channel (20 %), p1^2 (70 %) or two
+/// noise states through K (47 % of the one-step error) passed every test of a finding
+/// (docs/bench-diagnose.md). Why the past window alone, not order + 1 as well: a larger
+/// past window leaves the model class unchanged (the same order and structure; only the
+/// estimator's bias shrinks), so it cannot absorb a real effect, while one or two more
+/// states reproduce an input delay of one or two samples exactly, or noise states.
+///
+/// When the regressor of p + 2 exceeds [`MAX_REGRESSORS`] (and twice the model's own:
+/// LPV-PBSID's Kronecker regressor grows as m^p with m - 1 scheduling signals, so a
+/// scheduled model at past 7 has 508 regressors and at past 9 2044), it is fitted in the
+/// kernel form (`Solver::Dual`, the cost of which does not grow with the regressor length)
+/// when the record has at most [`MAX_KERNEL_WINDOWS`] windows, as the scheduling effects
+/// are; otherwise p + 1 is tried, then nothing (None; also for LPV-ARX models).
+pub fn larger_past(spec: &Spec, rows: usize) -> Option<Candidate> {
+    if spec.arx.is_some() {
+        return None;
+    }
+    let past = spec.opts.past;
+    let q_base = regressors(spec);
+    for p in [past + 2, past + 1] {
+        let mut sp = spec.clone();
+        sp.opts.past = p;
+        if let Some(f) = sp.opts.future {
+            sp.opts.future = Some(f.min(p));
+        }
+        let q = regressors(&sp);
+        if q > MAX_REGRESSORS.max(2 * q_base) {
+            if rows.saturating_sub(p) > MAX_KERNEL_WINDOWS {
+                continue;
+            }
+            sp.opts.solver = crate::pbsid::Solver::Dual;
+        }
+        let detail = format!(
+            "past window {p} (was {past}), order {}",
+            match sp.opts.order {
+                Order::Auto => "from the singular values".to_string(),
+                Order::Fixed(o) => o.to_string(),
+            }
+        );
+        return Some(Candidate {
+            effect: Effect::OrderTooLow,
+            detail,
+            spec: sp,
+            null: None,
+        });
+    }
+    None
+}
+
+/// Whether `c` is the structure `larger` of [`larger_past`] (the same past window and order
+/// setting of an `order-too-low` variant without its own null): then it is not refit twice.
+pub fn is_larger_past(c: &Candidate, larger: &Candidate) -> bool {
+    c.effect == Effect::OrderTooLow
+        && c.null.is_none()
+        && c.spec.opts.past == larger.spec.opts.past
+        && c.spec.opts.order == larger.spec.opts.order
+        && c.spec.opts.future == larger.spec.opts.future
+}
+
+/// A variant's held-out loss `loss1` against the model's own structure with a larger past
+/// window, `loss_larger` ([`larger_past`]; same mode): [`versus`], or None when that
+/// structure's free run diverged (a variant needs no evidence against a diverged model).
+pub fn versus_larger(loss_larger: &[f64], loss1: &[f64]) -> Option<(f64, f64)> {
+    loss_larger
+        .iter()
+        .all(|v| v.is_finite())
+        .then(|| versus(loss_larger, loss1))
+}
+
+/// Whether a finding improves on the model's own structure with a larger past window
+/// ([`larger_past`]) with the evidence a finding needs: the same rule as [`beats_user`]
+/// (explained >= [`MIN_EXPLAINED`] of that structure's held-out error and the batch t test
+/// at ALPHA / `tried`; on a short held-out record a lower held-out error). `vs_larger` is
+/// [`versus_larger`] of that structure and the variant. Not asked of `order-too-low`, whose
+/// variants are the larger structures themselves.
+pub fn beats_larger(vs_larger: (f64, f64), tried: usize, short: bool) -> bool {
+    beats_user(vs_larger, tried, short)
+}

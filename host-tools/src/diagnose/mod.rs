@@ -3,7 +3,11 @@
 //! missing effect of the catalogue ([`effects`]) by how much of the held-out residual a refit
 //! with the effect added explains ([`refit`]), and with `--fix` adds the best one, refits
 //! with the model's own settings and reports the error before and after ([`report`]), with
-//! pictures ([`plots`]).
+//! pictures ([`plots`]). Before an effect is named, its variant must also beat the model's
+//! own structure refit with a larger past window ([`effects::larger_past`]): the bias of a
+//! past window too short for the model's own structure is otherwise credited to whichever
+//! effect absorbs it best; when that larger past window is what removes the error, it is
+//! the `order-too-low` finding.
 //!
 //! Where each idea lives: [`stats`] (distributions, correlations, FFT, batch means, least
 //! squares on the core's Gram), [`residual`] (the tests), [`effects`] (catalogue, scoring,
@@ -444,7 +448,20 @@ pub fn diagnose_with_progress(
             val,
             train_residual: &train_res,
         };
-        let (cands, na) = candidates(&ctx);
+        let (mut cands, mut na) = candidates(&ctx);
+        // the model's own structure with a larger past window, which every finding must also
+        // beat (effects::larger_past): scored as an order-too-low variant (the verdict when it
+        // is what removes the error), added when the catalogue did not try it (a scheduled
+        // model's regressor at past + 2 exceeds the catalogue's limit; it is fitted in the
+        // kernel form here)
+        let larger = effects::larger_past(&spec, train.len());
+        if let Some(l) = &larger {
+            if !cands.iter().any(|c| effects::is_larger_past(c, l)) {
+                let skipped = format!("past window {} ", l.spec.opts.past);
+                na.retain(|(e, why)| !(*e == Effect::OrderTooLow && why.starts_with(&skipped)));
+                cands.push(l.clone());
+            }
+        }
         let tried = cands.len();
         let scored = score_all(
             cands,
@@ -618,11 +635,58 @@ pub fn diagnose_with_progress(
             })
             .collect();
         let user_ok = |j: usize| vs_user[j].is_none_or(|v| effects::beats_user(v, tried, short));
-        let sig: Vec<bool> = (0..best.len())
+        let passed: Vec<bool> = (0..best.len())
             .map(|j| {
                 full_sig[j] && replication[j].as_ref().is_none_or(|r| rep_ok(j, r)) && user_ok(j)
             })
             .collect();
+        // every finding but order-too-low must also beat the model's own structure with a
+        // larger past window (effects::beats_larger); an own-output candidate, fitted with the
+        // output-error refinement, against that structure refined the same way (refit here,
+        // only when such a finding passed everything else)
+        let larger_at = larger.as_ref().and_then(|l| {
+            scored
+                .iter()
+                .position(|s| effects::is_larger_past(&s.cand, l))
+        });
+        let larger_eval = larger_at.and_then(|i| scored[i].eval.as_ref());
+        let larger_refined: Option<Eval> = larger
+            .as_ref()
+            .filter(|_| {
+                best.iter()
+                    .zip(&passed)
+                    .any(|(b, ok)| *ok && b.0 == Effect::OutputNonlinearity)
+            })
+            .and_then(|l| {
+                let sp = Spec {
+                    refined: true,
+                    ..l.spec.clone()
+                };
+                fit_spec(&sp, train, &current.fit)
+                    .ok()
+                    .and_then(|f| Eval::new(&f.model, val).ok())
+            });
+        let vs_larger: Vec<Option<(f64, f64)>> = best
+            .iter()
+            .enumerate()
+            .map(|(j, b)| {
+                if !passed[j] || b.0 == Effect::OrderTooLow {
+                    return None;
+                }
+                let mode = b.0.metric();
+                let e = scored[b.1].eval.as_ref()?;
+                let l = if b.0 == Effect::OutputNonlinearity {
+                    larger_refined.as_ref()
+                } else {
+                    larger_eval
+                }?;
+                effects::versus_larger(&l.loss(mode), &e.loss(mode))
+            })
+            .collect();
+        let larger_ok =
+            |j: usize| vs_larger[j].is_none_or(|v| effects::beats_larger(v, tried, short));
+        let sig: Vec<bool> = (0..best.len()).map(|j| passed[j] && larger_ok(j)).collect();
+        let larger_detail = larger.as_ref().map_or(String::new(), |l| l.detail.clone());
         // a noise model cannot explain the part of the residual an input-driven effect does
         let det_best = best
             .iter()
@@ -657,6 +721,14 @@ pub fn diagnose_with_progress(
                         "refit on each half of the training data: explains {} of the held-out error (p = {})",
                         r.iter().map(|x| format!("{:.1} %", 100.0 * x.0)).collect::<Vec<_>>().join(" and "),
                         r.iter().map(|x| format!("{:.1e}", x.1)).collect::<Vec<_>>().join(", ")
+                    ));
+                }
+                if let Some(v) = vs_larger[j] {
+                    ev.push(format!(
+                        "against the model's own structure with a larger past window ({larger_detail}{}): explains {:.1} % of its held-out error (p = {:.2e})",
+                        if effect == Effect::OutputNonlinearity { ", refined" } else { "" },
+                        100.0 * v.0,
+                        v.1
                     ));
                 }
                 let f = Finding {
@@ -706,6 +778,21 @@ pub fn diagnose_with_progress(
                     "it is judged against its own null; against the refit of the model's own structure it explains {:.1} % of the held-out error (p = {:.2e}), and a fix must improve on that model",
                     100.0 * v.0,
                     v.1
+                )
+            } else if let Some(v) = j.filter(|j| !larger_ok(*j)).and_then(|j| vs_larger[j]) {
+                format!(
+                    "the model's own structure with a larger past window ({larger_detail}) removes that error as well: against it this variant explains {:.1} % of the held-out error (p = {:.2e}; {}); the error it removes is the bias of a past window too short for the model's own structure (see order-too-low)",
+                    100.0 * v.0,
+                    v.1,
+                    if short {
+                        "a finding must have a lower held-out error than it".to_string()
+                    } else {
+                        format!(
+                            "a finding must improve on it by >= {:.0} % at p < {:.1e}",
+                            100.0 * effects::MIN_EXPLAINED,
+                            ALPHA / tried.max(1) as f64
+                        )
+                    }
                 )
             } else if let Some((_, r)) = rep.filter(|(j, r)| !rep_ok(*j, r)).filter(|_| short) {
                 format!(

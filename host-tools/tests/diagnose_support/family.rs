@@ -44,6 +44,34 @@ fn mse(model: &ModelFile, ds: &lpvid_host::data::Dataset, mode: Mode) -> f64 {
     }
 }
 
+/// Draw the plant of `effect` with `seed` (records of `n` samples), identify it with the
+/// user's `lpvid pbsid` options and diagnose it with `--fix` (one step): the user's model and
+/// the outcome, for tests that look into the report.
+pub fn diagnose_one(
+    effect: &str,
+    seed: u64,
+    n: usize,
+) -> (ModelFile, lpvid_host::diagnose::Outcome) {
+    let case = family_case(effect, seed, n).unwrap();
+    let dir = tempfile::tempdir().unwrap();
+    let tp = dir.path().join("train.csv");
+    let mp = dir.path().join("model.json");
+    case.train.write_csv(&tp).unwrap();
+    let mut cli: Vec<String> = vec!["lpvid".into(), "pbsid".into(), "--train".into()];
+    cli.push(tp.display().to_string());
+    cli.extend(case.pbsid_args.iter().cloned());
+    cli.extend(["--out".to_string(), mp.display().to_string()]);
+    lpvid_host::cli::run(cli, &mut Vec::new()).unwrap();
+    let model = ModelFile::read(&mp).unwrap();
+    let opts = Options {
+        fix: true,
+        max_steps: 1,
+        threads: 2,
+    };
+    let out = diagnose(&model, &case.train, &case.val, &opts).unwrap();
+    (model, out)
+}
+
 /// Draw, identify and diagnose the plant of `effect` with `seed` (records of `n` samples).
 pub fn run_one(effect: &str, seed: u64, n: usize) -> FamilyRun {
     run_one_with(effect, seed, n, None)
@@ -104,6 +132,13 @@ pub fn run_one_with(effect: &str, seed: u64, n: usize, val_len: Option<usize>) -
                 f.significant,
                 f.blocked_by
             );
+            for e in f
+                .evidence
+                .iter()
+                .filter(|e| e.contains("larger past window"))
+            {
+                let _ = writeln!(v, "      {e}");
+            }
         }
         for s in r.steps.iter().take(1).flat_map(|st| &st.variants_scored) {
             if s.effect == "output-nonlinearity" || s.explained > 0.05 {
