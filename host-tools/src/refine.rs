@@ -25,7 +25,8 @@ pub struct Refined {
     /// Mean squared simulation error after.
     pub mse_after: f64,
     /// Levenberg-Marquardt iterations taken (Jacobians evaluated; the last one may have
-    /// found no improving step, or a relative cost decrease below 1e-10, which stops it).
+    /// found no improving step, a relative cost decrease below 1e-10, or the end of a stall
+    /// ([`STALL_DECREASE`] over [`STALL_WINDOW`] iterations), which stops it).
     pub iterations: usize,
 }
 
@@ -94,6 +95,26 @@ fn residual(m: &LpvSs, x0: &DVector<f64>, sig: &Signals, fb: &Feedback) -> Optio
         }
         Some(out)
     }
+}
+
+/// Iterations over which the stall test of the Levenberg-Marquardt loop measures progress.
+pub const STALL_WINDOW: usize = 10;
+/// Relative cost decrease over [`STALL_WINDOW`] iterations below which the loop stops.
+pub const STALL_DECREASE: f64 = 1e-6;
+
+/// Whether the cost `history` (one entry per iteration, the start first) has stalled: it fell
+/// by less than [`STALL_DECREASE`] of its value over the last [`STALL_WINDOW`] iterations.
+/// On the ill-conditioned directions of a state-space parametrisation (the similarity
+/// transform leaves the free run unchanged) Levenberg-Marquardt can keep accepting steps that
+/// each gain a little; this ends the creep, not a descent that still makes progress, so the
+/// iteration cap can be generous.
+fn stalled(history: &[f64]) -> bool {
+    let k = history.len();
+    if k <= STALL_WINDOW {
+        return false;
+    }
+    let (old, new) = (history[k - 1 - STALL_WINDOW], history[k - 1]);
+    old - new < STALL_DECREASE * old.abs()
 }
 
 /// Refine `model` on `sig` by Levenberg-Marquardt on the free-run error (at most `max_iter`
@@ -189,6 +210,8 @@ pub fn refine_d_columns(
     let np = theta.len();
     let mut mu = 1e-3;
     let mut it = 0;
+    // the cost after each iteration, for the stall test below
+    let mut history = vec![c];
     while it < max_iter {
         it += 1;
         // forward-difference Jacobian of the residual
@@ -236,7 +259,8 @@ pub fn refine_d_columns(
             }
             mu *= 10.0;
         }
-        if !improved || converged {
+        history.push(c);
+        if !improved || converged || stalled(&history) {
             break;
         }
     }
@@ -256,6 +280,21 @@ mod tests {
     use crate::metrics::{mean, vaf_per_output};
     use crate::pbsid::{fit, Order, PbsidOptions, Reg};
     use crate::systems;
+
+    /// The stall test: a cost that still falls by 1 % per iteration is not stalled, one that
+    /// falls by 1e-8 of itself per iteration is after [`STALL_WINDOW`] iterations, and a
+    /// history shorter than the window never is.
+    #[test]
+    fn stall_test_ends_a_creep_not_a_descent() {
+        let geometric = |rate: f64, k: usize| -> Vec<f64> {
+            (0..k).map(|i| 2.0 * (1.0 - rate).powi(i as i32)).collect()
+        };
+        assert!(!stalled(&geometric(1e-2, 40)));
+        assert!(stalled(&geometric(1e-8, STALL_WINDOW + 1)));
+        assert!(!stalled(&geometric(1e-8, STALL_WINDOW)));
+        // 1e-7 per iteration: 1e-6 over the window, at the boundary; 2e-7 is progress
+        assert!(!stalled(&geometric(2e-7, 40)));
+    }
 
     /// B2 at 100 dB, p = 5: the subspace model carries the finite-past-window bias (free-run
     /// VAF about 97); the refinement reaches the noise floor (the true model's own training

@@ -171,9 +171,10 @@ fn emps() {
 /// Cascaded tanks (estimation file -> validation file): the 205 held-out rows are a short
 /// record, cross-validated in 5 blocks (`diagnose::effects::cv_folds`); the tanks' level
 /// dependence is found as a Lur'e feedback sin(omega y1) and, after the selection, the chosen
-/// structure is refit on all 1024 estimation rows (`diagnose::refit_on_all`). Measured:
-/// 1.166 -> 0.490 V from an estimated initial state (1.402 -> 0.973 V from x0 = 0). The
-/// issue's goal, 0.45 V (PNLSS), is NOT reached; the test asserts what was measured.
+/// structure is refit on all 1024 estimation rows (`diagnose::refit_on_all`), with the
+/// output-error refinement run until it stalls (`refine::stalled`) rather than cut at 60
+/// iterations. Measured: 1.166 -> 0.437 V from an estimated initial state (1.402 -> 0.859 V
+/// from x0 = 0): the goal, 0.45 V (PNLSS), is asserted.
 #[test]
 fn cascaded_tanks() {
     let Some((_, r)) = bench("tanks") else {
@@ -190,6 +191,6 @@ fn cascaded_tanks() {
     assert_eq!(refit.rows, 1024);
     let (_, b0, b_est, a0, a_est) = r.rmse[0];
     assert!(b_est > 1.0 && b0 > 1.0, "{b0} {b_est}");
-    assert!(a_est <= 0.5 && a_est < b_est / 2.0, "{b_est} {a_est}");
+    assert!(a_est <= 0.45 && a_est < b_est / 2.0, "{b_est} {a_est}");
     assert!(a0 < b0, "{b0} {a0}");
 }
