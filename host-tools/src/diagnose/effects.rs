@@ -398,29 +398,53 @@ fn score_inner(
             seconds: 0.0,
         };
     }
-    let d: Vec<f64> = loss0.iter().zip(&loss1).map(|(a, b)| a - b).collect();
-    let m0 = loss0.iter().sum::<f64>();
-    let explained = if m0 > 0.0 {
-        d.iter().sum::<f64>() / m0
-    } else {
-        0.0
-    };
-    let ratios = batch_log_ratios(loss0, &loss1, batch_count(d.len()));
-    let (t, nu) = if ratios.is_empty() {
-        (0.0, 1.0)
-    } else {
-        mean_t(&ratios)
-    };
+    let c = compare(loss0, &loss1);
     Scored {
         cand,
         fitted: Some(fitted),
         eval: Some(eval),
-        explained,
-        t,
-        p_value: t_sf(t, nu),
-        ratios,
+        explained: c.explained,
+        t: c.t,
+        p_value: c.p_value,
+        ratios: c.ratios,
         error: None,
         seconds: 0.0,
+    }
+}
+
+/// A variant's held-out per-sample loss against a null's (same mode, same rows): the
+/// module's noise threshold test, in one place for the null refit ([`score`]), a variant's
+/// own null and the user's structure ([`versus`]).
+#[derive(Debug, Clone)]
+pub struct Comparison {
+    /// 1 - sum(loss1) / sum(loss0): the fraction of the null's error removed.
+    pub explained: f64,
+    /// Batch-means t of the per-batch log ratios of the null's to the variant's error.
+    pub t: f64,
+    /// One-sided p-value of `t`.
+    pub p_value: f64,
+    /// The per-batch log ratios (empty when the record is too short for one batch).
+    pub ratios: Vec<f64>,
+}
+
+/// [`Comparison`] of finite losses `loss1` (variant) and `loss0` (null) of equal length.
+pub fn compare(loss0: &[f64], loss1: &[f64]) -> Comparison {
+    let d: f64 = loss0.iter().zip(loss1).map(|(a, b)| a - b).sum();
+    let m0 = loss0.iter().sum::<f64>();
+    let explained = if m0 > 0.0 { d / m0 } else { 0.0 };
+    let ratios = batch_log_ratios(loss0, loss1, batch_count(loss0.len()));
+    // no batch, no test: p = 1 (never significant)
+    let (t, p_value) = if ratios.is_empty() {
+        (0.0, 1.0)
+    } else {
+        let (t, nu) = mean_t(&ratios);
+        (t, t_sf(t, nu))
+    };
+    Comparison {
+        explained,
+        t,
+        p_value,
+        ratios,
     }
 }
 
@@ -1690,21 +1714,14 @@ pub fn cv_agree(held_explained: f64, folds: &[(f64, f64)]) -> bool {
 }
 
 /// A variant's held-out loss `loss1` against a null's `loss0` (same mode): the explained
-/// fraction and the one-sided p-value of the batch log-ratio t test (the module's noise
-/// threshold test).
+/// fraction and the p-value of [`compare`]; (-inf, 1) when the variant's loss is not finite
+/// or the records differ.
 pub fn versus(loss0: &[f64], loss1: &[f64]) -> (f64, f64) {
     if loss1.len() != loss0.len() || loss1.iter().any(|v| !v.is_finite()) {
         return (f64::NEG_INFINITY, 1.0);
     }
-    let m0 = loss0.iter().sum::<f64>();
-    let m1 = loss1.iter().sum::<f64>();
-    let explained = if m0 > 0.0 { (m0 - m1) / m0 } else { 0.0 };
-    let ratios = batch_log_ratios(loss0, loss1, batch_count(loss0.len()));
-    if ratios.is_empty() {
-        return (explained, 1.0);
-    }
-    let (t, nu) = mean_t(&ratios);
-    (explained, t_sf(t, nu))
+    let c = compare(loss0, loss1);
+    (c.explained, c.p_value)
 }
 
 /// Whether a variant judged against its own null ([`Candidate::null`]: the BC-IV path's
