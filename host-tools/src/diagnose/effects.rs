@@ -524,12 +524,13 @@ pub fn candidates(ctx: &Context<'_>) -> (Vec<Candidate>, Vec<(Effect, String)>) 
     let mut push = |effect: Effect, detail: String, spec: Spec| {
         let q = regressors(&spec);
         let windows = ctx.train.len().saturating_sub(spec.opts.past);
-        // (order-too-low: its doubled past window on a scheduled model)
-        let kernel_effect = matches!(
+        let scheduling_effect = matches!(
             effect,
-            Effect::ScheduledOutput | Effect::SchedulingNonlinearity | Effect::OrderTooLow
+            Effect::ScheduledOutput | Effect::SchedulingNonlinearity
         );
-        if q > MAX_REGRESSORS.max(2 * q_base) && !(kernel_effect && windows <= MAX_KERNEL_WINDOWS) {
+        if q > MAX_REGRESSORS.max(2 * q_base)
+            && !(scheduling_effect && windows <= MAX_KERNEL_WINDOWS)
+        {
             skipped.push((
                 effect,
                 format!("{detail}: not tried, its PBSID regression would have {q} regressors"),
@@ -902,23 +903,9 @@ pub fn candidates(ctx: &Context<'_>) -> (Vec<Candidate>, Vec<(Effect, String)>) 
         }
     }
     // order-too-low
-    // The states the model lacks may be slower than the ones it has: the user chose the past
-    // window for the dynamics the model represents, and PBSID neglects the transition matrix
-    // of the predictor's A - K C beyond `past` samples (the approximation phi_{j,k} ~ 0 for
-    // j >= p, eq. (8) of the kernel paper; biased for finite p). So order + 2 is also tried
-    // with the past window doubled (at most N / 20 samples). Measured on the family (docs/bench-diagnose.md): seed 1000, order 3 in place of
-    // 5 with a resonant mode of radius 0.86 and past 6 (the scheduled cap), the order-5 refit's
-    // held-out free-run error is 0.0147 var(y) at past 6 against 0.0164 for the user's
-    // structure (10 %), 0.0090 at past 12 (45 %).
     let n = ctx.base.order;
     let past = spec.opts.past;
-    let long = (2 * past).min(ctx.train.len() / 20).max(past);
-    let mut sizes = vec![(Some(n + 1), past), (Some(n + 2), past)];
-    if long > past {
-        sizes.push((Some(n + 2), long));
-    }
-    sizes.push((None, past + 2));
-    for (order, p) in sizes {
+    for (order, p) in [(Some(n + 1), past), (Some(n + 2), past), (None, past + 2)] {
         let mut sp = spec.clone();
         sp.opts.past = p;
         let detail;
@@ -932,14 +919,7 @@ pub fn candidates(ctx: &Context<'_>) -> (Vec<Candidate>, Vec<(Effect, String)>) 
                     sp.opts.past = sp.opts.past.max(need);
                     sp.opts.future = Some(need.min(sp.opts.past));
                 }
-                detail = if sp.opts.past == past {
-                    format!("order {o} (was {n})")
-                } else {
-                    format!(
-                        "order {o} (was {n}), past window {} (was {past})",
-                        sp.opts.past
-                    )
-                };
+                detail = format!("order {o} (was {n})");
             }
             None => {
                 if let Some(f) = sp.opts.future {
