@@ -8,7 +8,7 @@
 use std::collections::BTreeMap;
 use std::fmt::Write as _;
 
-use lpvid_host::diagnose::plants::family_case;
+use lpvid_host::diagnose::plants::{family_case, FamilyCase};
 use lpvid_host::diagnose::{diagnose, Options};
 use lpvid_host::model::ModelFile;
 use lpvid_host::simulate::{simulate, Mode};
@@ -44,6 +44,21 @@ fn mse(model: &ModelFile, ds: &lpvid_host::data::Dataset, mode: Mode) -> f64 {
     }
 }
 
+/// The user's model of a family case: `lpvid pbsid` on its training record with the case's
+/// options (the command line a user runs), read back from its output file.
+fn user_model(case: &FamilyCase) -> Result<ModelFile, String> {
+    let dir = tempfile::tempdir().map_err(|e| e.to_string())?;
+    let tp = dir.path().join("train.csv");
+    let mp = dir.path().join("model.json");
+    case.train.write_csv(&tp).map_err(|e| e.to_string())?;
+    let mut cli: Vec<String> = vec!["lpvid".into(), "pbsid".into(), "--train".into()];
+    cli.push(tp.display().to_string());
+    cli.extend(case.pbsid_args.iter().cloned());
+    cli.extend(["--out".to_string(), mp.display().to_string()]);
+    lpvid_host::cli::run(cli, &mut Vec::new()).map_err(|e| e.to_string())?;
+    ModelFile::read(&mp).map_err(|e| e.to_string())
+}
+
 /// Draw the plant of `effect` with `seed` (records of `n` samples), identify it with the
 /// user's `lpvid pbsid` options and diagnose it with `--fix` (one step): the user's model and
 /// the outcome, for tests that look into the report.
@@ -53,16 +68,7 @@ pub fn diagnose_one(
     n: usize,
 ) -> (ModelFile, lpvid_host::diagnose::Outcome) {
     let case = family_case(effect, seed, n).unwrap();
-    let dir = tempfile::tempdir().unwrap();
-    let tp = dir.path().join("train.csv");
-    let mp = dir.path().join("model.json");
-    case.train.write_csv(&tp).unwrap();
-    let mut cli: Vec<String> = vec!["lpvid".into(), "pbsid".into(), "--train".into()];
-    cli.push(tp.display().to_string());
-    cli.extend(case.pbsid_args.iter().cloned());
-    cli.extend(["--out".to_string(), mp.display().to_string()]);
-    lpvid_host::cli::run(cli, &mut Vec::new()).unwrap();
-    let model = ModelFile::read(&mp).unwrap();
+    let model = user_model(&case).unwrap();
     let opts = Options {
         fix: true,
         max_steps: 1,
@@ -86,15 +92,6 @@ pub fn run_one_with(effect: &str, seed: u64, n: usize, val_len: Option<usize>) -
             c.truncate(v);
         }
     }
-    let dir = tempfile::tempdir().unwrap();
-    let tp = dir.path().join("train.csv");
-    let mp = dir.path().join("model.json");
-    case.train.write_csv(&tp).unwrap();
-    let mut cli: Vec<String> = vec!["lpvid".into(), "pbsid".into(), "--train".into()];
-    cli.push(tp.display().to_string());
-    cli.extend(case.pbsid_args.iter().cloned());
-    cli.extend(["--out".to_string(), mp.display().to_string()]);
-    let mut sink = Vec::new();
     let fail = |why: String| FamilyRun {
         planted: effect.to_string(),
         seed,
@@ -102,10 +99,10 @@ pub fn run_one_with(effect: &str, seed: u64, n: usize, val_len: Option<usize>) -
         ratio: 1.0,
         description: case.description.clone(),
     };
-    if let Err(e) = lpvid_host::cli::run(cli, &mut sink) {
-        return fail(e.to_string());
-    }
-    let model = ModelFile::read(&mp).unwrap();
+    let model = match user_model(&case) {
+        Ok(m) => m,
+        Err(e) => return fail(e),
+    };
     let opts = Options {
         fix: true,
         max_steps: 1,
