@@ -1712,7 +1712,10 @@ pub fn versus(loss0: &[f64], loss1: &[f64]) -> (f64, f64) {
 /// a lower held-out error. `vs_user` is [`versus`] of the model's null refit and the variant.
 /// Without it a BC-IV correction that explained 100 % of its own LPV-ARX null's error was
 /// applied to a seed-3000 output-offset plant of the family and made the user's LPV-SS
-/// model's held-out error 6.7 times worse (docs/bench-diagnose.md).
+/// model's held-out error 6.7 times worse (docs/bench-diagnose.md). The same rule judges a
+/// finding against the model's structure with a larger past window ([`larger_past`],
+/// `vs_user` then [`versus_larger`]; not asked of `order-too-low`, whose variants are the
+/// larger structures themselves).
 pub fn beats_user(vs_user: (f64, f64), tried: usize, short: bool) -> bool {
     if short {
         vs_user.0 > 0.0
@@ -1739,7 +1742,7 @@ pub fn is_arx(m: &ModelFile) -> bool {
 /// The model's own structure refit with a larger past window (same order setting, same
 /// signals, same regularisation): the `order-too-low` variant "past window p + 2" of
 /// [`candidates`], which a careful user would try first when the held-out error looks biased.
-/// A finding must also beat it ([`beats_larger`]). A past window p truncates the
+/// A finding must also beat it ([`beats_user`] on [`versus_larger`]). A past window p truncates the
 /// predictor's memory of the plant at lag p; when the plant's (frozen) dynamics are slower,
 /// the user's refit is biased, and that bias gets credited to whichever effect absorbs it
 /// best: on the family's clean scheduled plants an offset channel (20 %), p1^2 (70 %) or two
@@ -1809,14 +1812,4 @@ pub fn versus_larger(loss_larger: &[f64], loss1: &[f64]) -> Option<(f64, f64)> {
         .iter()
         .all(|v| v.is_finite())
         .then(|| versus(loss_larger, loss1))
-}
-
-/// Whether a finding improves on the model's own structure with a larger past window
-/// ([`larger_past`]) with the evidence a finding needs: the same rule as [`beats_user`]
-/// (explained >= [`MIN_EXPLAINED`] of that structure's held-out error and the batch t test
-/// at ALPHA / `tried`; on a short held-out record a lower held-out error). `vs_larger` is
-/// [`versus_larger`] of that structure and the variant. Not asked of `order-too-low`, whose
-/// variants are the larger structures themselves.
-pub fn beats_larger(vs_larger: (f64, f64), tried: usize, short: bool) -> bool {
-    beats_user(vs_larger, tried, short)
 }

@@ -641,7 +641,7 @@ pub fn diagnose_with_progress(
             })
             .collect();
         // every finding but order-too-low must also beat the model's own structure with a
-        // larger past window (effects::beats_larger); an own-output candidate, fitted with the
+        // larger past window (effects::beats_user on effects::versus_larger); an own-output candidate, fitted with the
         // output-error refinement, against that structure refined the same way (refit here,
         // only when such a finding passed everything else)
         let larger_at = larger.as_ref().and_then(|l| {
@@ -684,7 +684,7 @@ pub fn diagnose_with_progress(
             })
             .collect();
         let larger_ok =
-            |j: usize| vs_larger[j].is_none_or(|v| effects::beats_larger(v, tried, short));
+            |j: usize| vs_larger[j].is_none_or(|v| effects::beats_user(v, tried, short));
         let sig: Vec<bool> = (0..best.len()).map(|j| passed[j] && larger_ok(j)).collect();
         let larger_detail = larger.as_ref().map_or(String::new(), |l| l.detail.clone());
         // a noise model cannot explain the part of the residual an input-driven effect does
