@@ -83,6 +83,14 @@ fn smart_rotor() {
         "{}",
         first.detail
     );
+    // the fundamental is the rotor's 1P (370 rpm = 38.746 rad/s), not a periodogram bin
+    let om: f64 = first
+        .detail
+        .split(" of ")
+        .find_map(|s| s.split(" rad/s").next().and_then(|v| v.trim().parse().ok()))
+        .unwrap_or_else(|| panic!("no rad/s in {}", first.detail));
+    let one_p = 370.0 / 60.0 * 2.0 * std::f64::consts::PI;
+    assert!((om / one_p - 1.0).abs() < 1e-3, "{om} vs 1P {one_p}");
     let (_, vaf0, vaf_est) = &r.vaf_after[0];
     for v in [vaf0, vaf_est] {
         assert!(v[0] >= 97.5 && v[1] >= 94.5, "{v:?}");

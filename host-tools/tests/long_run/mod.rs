@@ -72,13 +72,9 @@ fn sched(k: u64) -> f64 {
     (2.0 * std::f64::consts::PI * (k % 10) as f64 / 10.0).cos() + 0.2
 }
 
-/// Stream `n` samples of the B2 plant with process and measurement noise (seed `seed`).
-pub fn run(n: u64, seed: u64) -> LongRun {
-    let dims = PbsidDims::new(1, 1, 1, P).unwrap();
-    let len = stat_vector_len(&dims, StatsLayout::Extended).unwrap();
-    let mut s32 = stats::<f32>(dims, gram_storage_len(len));
-    let mut plain = stats::<f32>(dims, packed_len(len));
-    let mut s64 = stats::<f64>(dims, gram_storage_len(len));
+/// Visit the `n` samples (u, y, p) of the B2 plant with process and measurement noise (seed
+/// `seed`), simulated in f64 and rounded to f32: the same stream on every call.
+fn samples(n: u64, seed: u64, mut visit: impl FnMut(f32, f32, f32)) {
     let t = b2_truth();
     let (a0, a1, b0) = (&t.a[0], &t.a[1], &t.b[0]);
     let mut rng = Rng(seed.wrapping_mul(0x9e37_79b9_7f4a_7c15) | 1);
@@ -88,16 +84,37 @@ pub fn run(n: u64, seed: u64) -> LongRun {
         let mu = sched(k);
         let u = rng.unit();
         let y = x[0] + sv * rng.unit();
-        let (uf, yf, pf) = (u as f32, y as f32, mu as f32);
-        s32.update(&[uf], &[yf], &[pf]).unwrap();
-        plain.update(&[uf], &[yf], &[pf]).unwrap();
-        s64.update(&[uf as f64], &[yf as f64], &[pf as f64])
-            .unwrap();
+        visit(u as f32, y as f32, mu as f32);
         let a = |i: usize, j: usize| a0[(i, j)] + mu * a1[(i, j)];
         let x0 = a(0, 0) * x[0] + a(0, 1) * x[1] + b0[(0, 0)] * u + sw * rng.unit();
         let x1 = a(1, 0) * x[0] + a(1, 1) * x[1] + b0[(1, 0)] * u + sw * rng.unit();
         x = [x0, x1];
     }
+}
+
+/// Stream `n` samples of the B2 plant (seed `seed`) into the three statistics: the f64
+/// reference on one thread, the two f32 sums on another (the stream is regenerated on each,
+/// so the two cores of a test machine halve the wall time).
+pub fn run(n: u64, seed: u64) -> LongRun {
+    let dims = PbsidDims::new(1, 1, 1, P).unwrap();
+    let len = stat_vector_len(&dims, StatsLayout::Extended).unwrap();
+    let ((s32, plain), s64) = std::thread::scope(|scope| {
+        let reference = scope.spawn(|| {
+            let mut s64 = stats::<f64>(dims, gram_storage_len(len));
+            samples(n, seed, |u, y, p| {
+                s64.update(&[u as f64], &[y as f64], &[p as f64]).unwrap();
+            });
+            s64
+        });
+        let mut s32 = stats::<f32>(dims, gram_storage_len(len));
+        let mut plain = stats::<f32>(dims, packed_len(len));
+        samples(n, seed, |u, y, p| {
+            s32.update(&[u], &[y], &[p]).unwrap();
+            plain.update(&[u], &[y], &[p]).unwrap();
+        });
+        ((s32, plain), reference.join().unwrap())
+    });
+    let t = b2_truth();
     let reference = s64.gram();
     let err = |g: &St<f32>| {
         let (mut rel, mut normed) = (0.0f64, 0.0f64);
