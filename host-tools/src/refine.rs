@@ -97,6 +97,61 @@ fn residual(m: &LpvSs, x0: &DVector<f64>, sig: &Signals, fb: &Feedback) -> Optio
     }
 }
 
+/// Residual length x parameters from which [`jacobian`] splits its columns over threads
+/// (below it a thread's start costs more than its share of the simulations).
+pub const JACOBIAN_SPLIT_MIN_WORK: usize = 200_000;
+
+/// Forward-difference Jacobian dr/dtheta of the residual `r` = `cost(theta)`.1: one free run
+/// per parameter, the columns computed on up to the machine's parallelism of threads when
+/// the problem is large enough ([`JACOBIAN_SPLIT_MIN_WORK`]); each column is the same
+/// computation wherever it runs, so the result does not depend on the thread count. A run
+/// that fails (diverges) leaves its column zero.
+fn jacobian<F>(theta: &[f64], r: &[f64], cost: &F) -> DMatrix<f64>
+where
+    F: Fn(&[f64]) -> Option<(f64, Vec<f64>)> + Sync,
+{
+    let np = theta.len();
+    let column = |p: usize| -> Option<Vec<f64>> {
+        let h = 1e-7 * theta[p].abs().max(1e-3);
+        let mut t2 = theta.to_vec();
+        t2[p] += h;
+        let (_, r2) = cost(&t2)?;
+        Some(r2.iter().zip(r).map(|(a, b)| (a - b) / h).collect())
+    };
+    let threads = if r.len() * np >= JACOBIAN_SPLIT_MIN_WORK {
+        std::thread::available_parallelism()
+            .map_or(1, |v| v.get())
+            .min(np)
+    } else {
+        1
+    };
+    let cols: Vec<Option<Vec<f64>>> = if threads <= 1 {
+        (0..np).map(column).collect()
+    } else {
+        let chunk = np.div_ceil(threads);
+        std::thread::scope(|s| {
+            let handles: Vec<_> = (0..np)
+                .step_by(chunk)
+                .map(|lo| {
+                    let column = &column;
+                    s.spawn(move || (lo..(lo + chunk).min(np)).map(column).collect::<Vec<_>>())
+                })
+                .collect();
+            handles
+                .into_iter()
+                .flat_map(|h| h.join().expect("a Jacobian column panicked"))
+                .collect()
+        })
+    };
+    let mut jac = DMatrix::<f64>::zeros(r.len(), np);
+    for (p, c) in cols.into_iter().enumerate() {
+        if let Some(c) = c {
+            jac.column_mut(p).copy_from_slice(&c);
+        }
+    }
+    jac
+}
+
 /// Iterations over which the stall test of the Levenberg-Marquardt loop measures progress.
 pub const STALL_WINDOW: usize = 10;
 /// Relative cost decrease over [`STALL_WINDOW`] iterations below which the loop stops.
@@ -214,18 +269,8 @@ pub fn refine_d_columns(
     let mut history = vec![c];
     while it < max_iter {
         it += 1;
-        // forward-difference Jacobian of the residual
-        let mut jac = DMatrix::<f64>::zeros(r.len(), np);
-        for p in 0..np {
-            let h = 1e-7 * theta[p].abs().max(1e-3);
-            let mut t2 = theta.clone();
-            t2[p] += h;
-            if let Some((_, r2)) = cost(&t2) {
-                for (i, (a, b)) in r2.iter().zip(&r).enumerate() {
-                    jac[(i, p)] = (a - b) / h;
-                }
-            }
-        }
+        // forward-difference Jacobian of the residual, its columns on the machine's cores
+        let jac = jacobian(&theta, &r, &cost);
         let jt = jac.transpose();
         let jtj = &jt * &jac;
         let g = &jt * DVector::from_column_slice(&r);
