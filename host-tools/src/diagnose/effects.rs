@@ -514,13 +514,26 @@ pub struct Context<'a> {
     pub train_residual: &'a DMatrix<f64>,
 }
 
-/// All variants of every applicable effect, and the effects that do not apply (with why).
-pub fn candidates(ctx: &Context<'_>) -> (Vec<Candidate>, Vec<(Effect, String)>) {
+/// A catalogue variant that was generated but not tried: its PBSID regression would have
+/// more regressors than the catalogue's limit ([`MAX_REGRESSORS`], twice the model's own, or
+/// the kernel form's window limit for the scheduling effects). It is data (the variant and its
+/// regressor count); the report words it ([`super::report::not_tried`]).
+#[derive(Debug, Clone)]
+pub struct Skipped {
+    /// The variant that was not tried (its effect, detail and structure; `null` unset).
+    pub cand: Candidate,
+    /// Regressors its PBSID regression would have had.
+    pub regressors: usize,
+}
+
+/// All variants of every applicable effect, the effects that do not apply (with why), and the
+/// variants generated but not tried ([`Skipped`]).
+pub fn candidates(ctx: &Context<'_>) -> (Vec<Candidate>, Vec<(Effect, String)>, Vec<Skipped>) {
     let spec = ctx.spec;
     let mut out: Vec<Candidate> = Vec::new();
     let mut na: Vec<(Effect, String)> = Vec::new();
     let q_base = regressors(spec);
-    let mut skipped: Vec<(Effect, String)> = Vec::new();
+    let mut skipped: Vec<Skipped> = Vec::new();
     let mut push = |effect: Effect, detail: String, spec: Spec| {
         let q = regressors(&spec);
         let windows = ctx.train.len().saturating_sub(spec.opts.past);
@@ -531,10 +544,15 @@ pub fn candidates(ctx: &Context<'_>) -> (Vec<Candidate>, Vec<(Effect, String)>) 
         if q > MAX_REGRESSORS.max(2 * q_base)
             && !(scheduling_effect && windows <= MAX_KERNEL_WINDOWS)
         {
-            skipped.push((
-                effect,
-                format!("{detail}: not tried, its PBSID regression would have {q} regressors"),
-            ));
+            skipped.push(Skipped {
+                cand: Candidate {
+                    effect,
+                    detail,
+                    spec,
+                    null: None,
+                },
+                regressors: q,
+            });
             return;
         }
         let null = (effect == Effect::SchedulingNoise)
@@ -583,7 +601,7 @@ pub fn candidates(ctx: &Context<'_>) -> (Vec<Candidate>, Vec<(Effect, String)>) 
                     .into(),
             ));
         }
-        return (out, na);
+        return (out, na, skipped);
     }
     let map = &spec.signals;
     let s = map.m() - 1;
@@ -1025,8 +1043,7 @@ pub fn candidates(ctx: &Context<'_>) -> (Vec<Candidate>, Vec<(Effect, String)>) 
         push(Effect::OutputNonlinearity, detail, sp);
     }
     na.extend(why.map(|w| (Effect::OutputNonlinearity, w)));
-    na.extend(skipped);
-    (out, na)
+    (out, na, skipped)
 }
 
 /// A harmonic series found in a residual: fundamental (rad/sample), harmonics to model,

@@ -448,7 +448,7 @@ pub fn diagnose_with_progress(
             val,
             train_residual: &train_res,
         };
-        let (mut cands, mut na) = candidates(&ctx);
+        let (mut cands, na, mut skipped) = candidates(&ctx);
         // the model's own structure with a larger past window, which every finding must also
         // beat (effects::larger_past): scored as an order-too-low variant (the verdict when it
         // is what removes the error), added when the catalogue did not try it (a scheduled
@@ -457,8 +457,7 @@ pub fn diagnose_with_progress(
         let larger = effects::larger_past(&spec, train.len());
         if let Some(l) = &larger {
             if !cands.iter().any(|c| effects::is_larger_past(c, l)) {
-                let skipped = format!("past window {} ", l.spec.opts.past);
-                na.retain(|(e, why)| !(*e == Effect::OrderTooLow && why.starts_with(&skipped)));
+                skipped.retain(|s| !effects::is_larger_past(&s.cand, l));
                 cands.push(l.clone());
             }
         }
@@ -835,6 +834,11 @@ pub fn diagnose_with_progress(
             not_applicable: na
                 .into_iter()
                 .map(|(e, why)| (e.name().to_string(), why))
+                .chain(
+                    skipped
+                        .iter()
+                        .map(|s| (s.cand.effect.name().to_string(), report::not_tried(s))),
+                )
                 .collect(),
         });
         let Some(i) = top else {

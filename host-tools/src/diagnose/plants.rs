@@ -51,6 +51,9 @@ pub const FAMILY_EFFECTS: [&str; 13] = [
     "output-nonlinearity",
 ];
 
+/// Sample time of the records' `t` column.
+const TS: f64 = 0.01;
+
 /// One random plant with one planted effect, its records and the user's `lpvid pbsid` options.
 #[derive(Debug, Clone)]
 pub struct FamilyCase {
@@ -66,6 +69,36 @@ pub struct FamilyCase {
     pub val: Dataset,
     /// `lpvid pbsid` options (without --train/--out).
     pub pbsid_args: Vec<String>,
+    /// What was planted, as the generator drew it (for an oracle that knows the truth).
+    pub planted: Planted,
+}
+
+/// The planted effect's true structure as the generator drew it: what an oracle refit may use
+/// (the family benchmark's identifiability check, `tests/diagnose_support/family.rs`). Read
+/// only: recording it draws nothing, so the records of a seed are unchanged.
+#[derive(Debug, Clone, Default)]
+pub struct Planted {
+    /// The plant's order as the user knows it (`order-too-low`: without the added mode).
+    pub order: usize,
+    /// States of the true plant (`order-too-low`: order + 2).
+    pub states: usize,
+    /// Dead time of the input, samples (`input-delay`; 0 otherwise).
+    pub delay: usize,
+    /// The input nonlinearity (`input-nonlinearity`): 0 = u + s |u| u, 1 = u + s u^2,
+    /// 2 = a tanh saturation.
+    pub input_nl: Option<u8>,
+    /// The periodic disturbance (`periodic-disturbance`): its frequency in rad/sample and
+    /// whether its second harmonic was added.
+    pub sine: Option<(f64, bool)>,
+    /// Sample time of the records' `t` column.
+    pub ts: f64,
+    /// The pole of the AR(1) coloured output noise (`coloured-noise`).
+    pub coloured_pole: Option<f64>,
+    /// The own-output feedback (`output-nonlinearity`): the shape (0 = cubic spring -z^3,
+    /// 1 = sin z - z, 2 = signed square root; z = y / scale) and the scale.
+    pub output_nl: Option<(u8, f64)>,
+    /// The noise-free scheduling signal p1 over the training record (scheduled plants).
+    pub p1_train: Option<Vec<f64>>,
 }
 
 /// Why a family case cannot be drawn.
@@ -603,7 +636,7 @@ fn draw(effect: &str, seed: u64, n: usize, rng: &mut StdRng) -> Option<FamilyCas
     let split = |lo: usize, hi: usize, noisy: bool| {
         let mut names = vec!["t".to_string(), "u1".into(), "y1".into()];
         let mut cols = vec![
-            (lo..hi).map(|k| k as f64 * 0.01).collect::<Vec<_>>(),
+            (lo..hi).map(|k| k as f64 * TS).collect::<Vec<_>>(),
             u[lo..hi].to_vec(),
             y[lo..hi].to_vec(),
         ];
@@ -641,6 +674,17 @@ fn draw(effect: &str, seed: u64, n: usize, rng: &mut StdRng) -> Option<FamilyCas
         train: split(0, n, true),
         val: split(n, total, false),
         pbsid_args: args,
+        planted: Planted {
+            order,
+            states: nx,
+            delay,
+            input_nl: input_nl.map(|(k, _)| k),
+            sine: sine.map(|(_, om, _, harm)| (om, harm && 2.0 * om < PI)),
+            ts: TS,
+            coloured_pole: coloured.map(|(pole, _)| pole),
+            output_nl: out_nl.as_ref().map(|(kind, _, _)| (*kind, sy0)),
+            p1_train: scheduled.then(|| p[..n].to_vec()),
+        },
     })
 }
 

@@ -8,9 +8,12 @@
 use std::collections::BTreeMap;
 use std::fmt::Write as _;
 
+use lpvid_host::diagnose::effects::{significant, versus, Eval};
 use lpvid_host::diagnose::plants::{family_case, FamilyCase};
+use lpvid_host::diagnose::refit::{fit_spec, Noise, Spec};
 use lpvid_host::diagnose::{diagnose, Options};
-use lpvid_host::model::ModelFile;
+use lpvid_host::model::{Factor, FactorFn, ModelFile};
+use lpvid_host::pbsid::Order;
 use lpvid_host::simulate::{simulate, Mode};
 
 /// One diagnosed family plant.
@@ -27,6 +30,213 @@ pub struct FamilyRun {
     pub ratio: f64,
     /// What was drawn.
     pub description: String,
+    /// The oracle of the planted effect ([`oracle`]; None for clean plants).
+    pub oracle: Option<Oracle>,
+}
+
+/// The user's model structure refit with the planted effect's TRUE structure added (what the
+/// generator knows, [`lpvid_host::diagnose::plants::Planted`]), scored against the user's
+/// model on the held-out record: how much a diagnosis could gain at best with the catalogue's
+/// model class, at this plant's strength, noise and N.
+#[derive(Debug, Clone)]
+pub struct Oracle {
+    /// What was added.
+    pub detail: String,
+    /// Held-out error of the user's model / the oracle's, as [`FamilyRun::ratio`] (same mode,
+    /// same simulation); NaN when the oracle's refit failed.
+    pub ratio: f64,
+    /// Fraction of the user's held-out error the oracle explains and its p-value, scored as
+    /// diagnose scores a variant ([`Eval`]: x0 estimated on the first held-out samples,
+    /// [`versus`]: batch log-ratio t test).
+    pub explained: f64,
+    /// See `explained`.
+    pub p_value: f64,
+    /// [`identifiable`].
+    pub identifiable: bool,
+}
+
+/// The identifiability rule, defined once: the planted effect is identifiable on a plant when
+/// its oracle passes the test a finding of `lpvid diagnose` must pass against the user's model
+/// ([`significant`]: explains at least `MIN_EXPLAINED` = 10 % of the held-out error, and the
+/// held-out batch log-ratio t test gives p < `ALPHA`), with ONE variant tried (the oracle is
+/// given the structure, so no Bonferroni factor for a search). The t test is the replication
+/// rule: its spread is that of the error ratio over independent held-out batches, so the noise
+/// level of the plant sets the bar, not a number chosen on a seed. A plant whose oracle does
+/// not pass cannot be diagnosed by any rule that a finding on it would have to pass; it is
+/// not evidence against the method.
+pub fn identifiable(explained: f64, p_value: f64) -> bool {
+    significant(explained, p_value, 1)
+}
+
+/// The oracle's structure: the user's [`Spec`] with the planted effect's true structure, the
+/// way the catalogue of `diagnose::effects::candidates` writes that idea (an input channel, a
+/// scheduling basis function, a flag of [`Spec`]), with the true parameter where the catalogue
+/// searches one (the delay, the frequency, the order, the shape and scale of the feedback).
+/// `input-nonlinearity` of the tanh kind has no exact factor: its leading odd term u^3 and
+/// |u| u. `scheduling-noise`: the same structure, refit on the noise-free p1 (the returned
+/// training record). None for `clean`.
+fn oracle_spec(
+    case: &FamilyCase,
+    user: &Spec,
+) -> Option<(String, Spec, lpvid_host::data::Dataset)> {
+    let pl = &case.planted;
+    let mut sp = user.clone();
+    let mut train = case.train.clone();
+    let plain = |col: &str, pow: f64, delay: usize, func: Option<FactorFn>| Factor {
+        pow,
+        delay,
+        func,
+        ..Factor::col(col)
+    };
+    let detail = match case.effect.as_str() {
+        "output-offset" => {
+            sp.signals.inputs.push(vec![]);
+            "constant input channel".to_string()
+        }
+        "feedthrough" => {
+            sp.opts.feedthrough = true;
+            "feedthrough D".to_string()
+        }
+        "scheduled-output" => {
+            sp.scheduled_output = true;
+            "output equation C^(i), D^(i)".to_string()
+        }
+        "scheduling-nonlinearity" => {
+            sp.signals.scheduling.push(vec![plain("p1", 2.0, 0, None)]);
+            "scheduling basis p1^2".to_string()
+        }
+        "input-nonlinearity" => {
+            let u = plain("u1", 1.0, 0, None);
+            let abs_u = vec![plain("u1", 1.0, 0, Some(FactorFn::Abs)), u.clone()];
+            match pl.input_nl? {
+                0 => sp.signals.inputs.push(abs_u),
+                1 => sp.signals.inputs.push(vec![plain("u1", 2.0, 0, None)]),
+                _ => {
+                    sp.signals.inputs.push(vec![plain("u1", 3.0, 0, None)]);
+                    sp.signals.inputs.push(abs_u);
+                }
+            }
+            format!(
+                "input channel {}",
+                ["|u1| u1", "u1^2", "u1^3 and |u1| u1 (tanh)"][pl.input_nl? as usize]
+            )
+        }
+        "input-delay" => {
+            sp.signals.inputs[0] = vec![plain("u1", 1.0, pl.delay, None)];
+            format!("u1 delayed {} samples", pl.delay)
+        }
+        "periodic-disturbance" => {
+            let (om, harm) = pl.sine?;
+            let h = if harm { 2 } else { 1 };
+            for i in 1..=h {
+                for func in [FactorFn::Sin, FactorFn::Cos] {
+                    sp.signals.inputs.push(vec![Factor {
+                        omega: Some(i as f64 * om / pl.ts),
+                        ..plain("t", 1.0, 0, Some(func))
+                    }]);
+                }
+            }
+            format!("sin/cos of the true frequency {om:.4} rad/sample, {h} harmonic(s)")
+        }
+        "order-too-low" => {
+            // as the catalogue's order variants: enough block rows for the singular values
+            let o = pl.states;
+            sp.opts.order = Order::Fixed(o);
+            let l = sp.signals.outputs.len().max(1);
+            let need = (o + 1).div_ceil(l);
+            if sp.opts.future.unwrap_or(sp.opts.past) < need {
+                sp.opts.past = sp.opts.past.max(need);
+                sp.opts.future = Some(need.min(sp.opts.past));
+            }
+            format!("order {o}")
+        }
+        "coloured-noise" => {
+            // the plant is y = G u + v + e with v an AR(1): output error plus AR noise (the
+            // catalogue's Box-Jenkins-like variant) is its true structure
+            sp.noise = Noise::OutputError;
+            "output error + AR noise model".to_string()
+        }
+        "unused-signal" => {
+            sp.signals.inputs.push(vec![plain("w", 1.0, 0, None)]);
+            "input channel w".to_string()
+        }
+        "output-nonlinearity" => {
+            let (kind, scale) = pl.output_nl?;
+            let y = plain("y1", 1.0, 0, None);
+            let ch = match kind {
+                0 => vec![plain("y1", 3.0, 0, None)],
+                1 => vec![Factor {
+                    omega: Some(1.0 / scale),
+                    ..plain("y1", 1.0, 0, Some(FactorFn::Sin))
+                }],
+                _ => vec![plain("y1", 1.0, 0, Some(FactorFn::Sign)), {
+                    let mut f = y;
+                    f.pow = 0.5;
+                    f
+                }],
+            };
+            sp.signals.inputs.push(ch);
+            [
+                "feedback y1^3",
+                "feedback sin(y1/scale)",
+                "feedback sign(y1) sqrt|y1|",
+            ][kind as usize]
+                .to_string()
+        }
+        "scheduling-noise" => {
+            let p = pl.p1_train.as_ref()?;
+            let j = train.names.iter().position(|c| c == "p1")?;
+            train.cols[j] = p.clone();
+            "refit on the noise-free p1".to_string()
+        }
+        _ => return None,
+    };
+    Some((detail, sp, train))
+}
+
+/// The oracle of `case` against the user's `model` ([`Oracle`]), in `mode`; None for clean
+/// plants. The refit is the diagnosis's own ([`fit_spec`], the user's `fit` record extended).
+pub fn oracle(case: &FamilyCase, model: &ModelFile, mode: Mode) -> Option<Oracle> {
+    let mut notes = Vec::new();
+    let user = Spec::from_model(model, &mut notes).ok()?;
+    let (detail, sp, train) = oracle_spec(case, &user)?;
+    let failed = |why: String| Oracle {
+        detail: format!("{detail}: {why}"),
+        ratio: f64::NAN,
+        explained: f64::NEG_INFINITY,
+        p_value: 1.0,
+        identifiable: false,
+    };
+    let fitted = match fit_spec(&sp, &train, &model.fit) {
+        Ok(f) => f,
+        Err(e) => return Some(failed(e.to_string())),
+    };
+    let (e0, e1) = match (
+        Eval::new(model, &case.val),
+        Eval::new(&fitted.model, &case.val),
+    ) {
+        (Ok(a), Ok(b)) => (a, b),
+        (Err(e), _) | (_, Err(e)) => return Some(failed(e.to_string())),
+    };
+    let (explained, p_value) = versus(&e0.loss(mode), &e1.loss(mode));
+    let ratio = mse(model, &case.val, mode) / mse(&fitted.model, &case.val, mode).max(1e-300);
+    Some(Oracle {
+        detail,
+        ratio,
+        explained,
+        p_value,
+        identifiable: identifiable(explained, p_value),
+    })
+}
+
+/// The mode the planted effect is judged in: one-step prediction for coloured noise (a
+/// noise model changes only the predictor), free run otherwise.
+fn oracle_mode(effect: &str) -> Mode {
+    if effect == "coloured-noise" {
+        Mode::Predictor
+    } else {
+        Mode::FreeRun
+    }
 }
 
 fn mse(model: &ModelFile, ds: &lpvid_host::data::Dataset, mode: Mode) -> f64 {
@@ -98,6 +308,7 @@ pub fn run_one_with(effect: &str, seed: u64, n: usize, val_len: Option<usize>) -
         named: format!("error: {why}"),
         ratio: 1.0,
         description: case.description.clone(),
+        oracle: None,
     };
     let model = match user_model(&case) {
         Ok(m) => m,
@@ -164,12 +375,14 @@ pub fn run_one_with(effect: &str, seed: u64, n: usize, val_len: Option<usize>) -
         }
         None => 1.0,
     };
+    let oracle = oracle(&case, &model, oracle_mode(effect));
     FamilyRun {
         planted: effect.to_string(),
         seed,
         named,
         ratio,
         description: case.description,
+        oracle,
     }
 }
 
@@ -272,6 +485,78 @@ pub fn matrix(runs: &[FamilyRun]) -> String {
             s,
             "| {p} | {} | {rec:.2} | {med:.2} [{lo:.2}, {hi:.2}] |",
             cells.join(" | ")
+        );
+    }
+    s
+}
+
+/// Per planted effect (clean plants have no oracle): the raw recall, the plants whose oracle
+/// is [`identifiable`], the recall among them, and each missed identifiable plant's oracle
+/// ratio against the ratio achieved, as a markdown table (printed after [`matrix`]).
+pub fn identifiable_table(runs: &[FamilyRun]) -> String {
+    let mut by: BTreeMap<String, Vec<&FamilyRun>> = BTreeMap::new();
+    for r in runs.iter().filter(|r| r.planted != "clean") {
+        by.entry(r.planted.clone()).or_default().push(r);
+    }
+    let mut s = String::new();
+    let _ = writeln!(
+        s,
+        "| planted | recall | identifiable | recall among identifiable | named, not identifiable | oracle ratio median [min, max] | missed identifiable: seed (named) oracle ratio / achieved |"
+    );
+    let _ = writeln!(s, "|---|---|---|---|---|---|---|");
+    for (e, rs) in &by {
+        let hits = rs.iter().filter(|r| &r.named == e).count();
+        let ident: Vec<&&FamilyRun> = rs
+            .iter()
+            .filter(|r| r.oracle.as_ref().is_some_and(|o| o.identifiable))
+            .collect();
+        let ident_hits = ident.iter().filter(|r| &r.named == e).count();
+        let mut ratios: Vec<f64> = rs
+            .iter()
+            .filter_map(|r| r.oracle.as_ref().map(|o| o.ratio))
+            .filter(|v| !v.is_nan())
+            .collect();
+        ratios.sort_by(f64::total_cmp);
+        let oracle_ratios = if ratios.is_empty() {
+            "-".to_string()
+        } else {
+            format!(
+                "{:.2} [{:.2}, {:.2}]",
+                ratios[ratios.len() / 2],
+                ratios[0],
+                ratios[ratios.len() - 1]
+            )
+        };
+        let missed: Vec<String> = ident
+            .iter()
+            .filter(|r| &r.named != e)
+            .map(|r| {
+                format!(
+                    "{} ({}) {:.2} / {:.2}",
+                    r.seed,
+                    r.named,
+                    r.oracle.as_ref().map_or(f64::NAN, |o| o.ratio),
+                    r.ratio
+                )
+            })
+            .collect();
+        let among = if ident.is_empty() {
+            "-".to_string()
+        } else {
+            format!("{:.2}", ident_hits as f64 / ident.len() as f64)
+        };
+        let _ = writeln!(
+            s,
+            "| {e} | {:.2} | {} of {} | {among} | {} | {oracle_ratios} | {} |",
+            hits as f64 / rs.len() as f64,
+            ident.len(),
+            rs.len(),
+            hits - ident_hits,
+            if missed.is_empty() {
+                ".".to_string()
+            } else {
+                missed.join("; ")
+            }
         );
     }
     s
