@@ -440,23 +440,8 @@ pub fn fit_map(
         }
         if rf.mse_after < rf.mse_before {
             model = rf.model;
-            // K was PBSID's, for the matrices before the refinement: keep it only when the
-            // one-step predictor of the refined model is better with it than without (K = 0:
-            // the model run on the measured signals)
-            let one_step = |m: &LpvSs| {
-                let yh = m.run_from(&sig, &nalgebra::DVector::zeros(m.n()), true);
-                let e = (&sig.y - yh).map(|v| v * v).sum();
-                if e.is_finite() {
-                    e
-                } else {
-                    f64::INFINITY
-                }
-            };
-            let mut open = model.clone();
-            open.k.iter_mut().for_each(|k| k.fill(0.0));
-            if one_step(&open) < one_step(&model) {
-                model = open;
-            }
+            // K was PBSID's, for the matrices before the refinement
+            crate::refine::keep_k_if_it_predicts(&mut model, &sig);
         }
         refinement = Some((
             rf.mse_before,

@@ -97,6 +97,26 @@ fn residual(m: &LpvSs, x0: &DVector<f64>, sig: &Signals, fb: &Feedback) -> Optio
     }
 }
 
+/// Keep the innovation gain K of a refined model only when its one-step predictor is better
+/// with K than without (K = 0: the model run on the measured signals): K was estimated for
+/// the matrices before the output-error refinement changed them.
+pub fn keep_k_if_it_predicts(model: &mut LpvSs, sig: &Signals) {
+    let one_step = |m: &LpvSs| {
+        let yh = m.run_from(sig, &DVector::zeros(m.n()), true);
+        let e = (&sig.y - yh).map(|v| v * v).sum();
+        if e.is_finite() {
+            e
+        } else {
+            f64::INFINITY
+        }
+    };
+    let mut open = model.clone();
+    open.k.iter_mut().for_each(|k| k.fill(0.0));
+    if one_step(&open) < one_step(model) {
+        *model = open;
+    }
+}
+
 /// Residual length x parameters from which [`jacobian`] splits its columns over threads
 /// (below it a thread's start costs more than its share of the simulations).
 pub const JACOBIAN_SPLIT_MIN_WORK: usize = 200_000;

@@ -489,21 +489,8 @@ pub fn fit_nested(
     let iters = (budget as usize).clamp(5, super::output::REFINE_ITERATIONS);
     let rf = crate::refine::refine_d_columns(&start, &sig, &fb, &d_cols, iters);
     let mut model = rf.model;
-    // K is the null's: kept only when the one-step predictor is better with it (as fit_map)
-    let one_step = |mm: &LpvSs| {
-        let yh = mm.run_from(&sig, &DVector::zeros(mm.n()), true);
-        let e = (&sig.y - yh).map(|v| v * v).sum();
-        if e.is_finite() {
-            e
-        } else {
-            f64::INFINITY
-        }
-    };
-    let mut open = model.clone();
-    open.k.iter_mut().for_each(|k| k.fill(0.0));
-    if one_step(&open) < one_step(&model) {
-        model = open;
-    }
+    // K is the null's (as fit_map)
+    crate::refine::keep_k_if_it_predicts(&mut model, &sig);
     let mut rec = match &base.model.fit {
         Value::Object(m) => m.clone(),
         _ => Map::new(),
