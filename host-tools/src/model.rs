@@ -663,10 +663,28 @@ pub struct Feedback {
     pub scheduling: Vec<(usize, Loop)>,
 }
 
+impl Loop {
+    /// Does the signal read an output at the same sample (delay 0)? Such a signal stays out
+    /// of the output equation ([`SignalMap::check_loops`]).
+    pub fn reads_same_sample(&self) -> bool {
+        self.own.iter().any(|o| o.factor.delay == 0)
+    }
+}
+
 impl Feedback {
     /// No signal reads the model's own output.
     pub fn is_empty(&self) -> bool {
         self.inputs.is_empty() && self.scheduling.is_empty()
+    }
+
+    /// The input channels that read an output at the same sample ([`Loop::reads_same_sample`]):
+    /// their D columns are zero.
+    pub fn same_sample_inputs(&self) -> Vec<usize> {
+        self.inputs
+            .iter()
+            .filter(|(_, l)| l.reads_same_sample())
+            .map(|(i, _)| *i)
+            .collect()
     }
 
     /// Overwrite sample k of the inputs `u` (N x r) and scheduling `p` (N x s) with the loops'

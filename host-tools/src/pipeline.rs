@@ -393,12 +393,7 @@ pub fn fit_map(
         }
     }
     // a channel reading the output at the same sample has no feedthrough (check_loops)
-    let now: Vec<usize> = fb
-        .inputs
-        .iter()
-        .filter(|(_, lp)| lp.own.iter().any(|o| o.factor.delay == 0))
-        .map(|(i, _)| *i)
-        .collect();
+    let now = fb.same_sample_inputs();
     for d in model.d.iter_mut() {
         for &i in &now {
             d.column_mut(i).fill(0.0);

@@ -183,7 +183,7 @@ pub const STALL_DECREASE: f64 = 1e-6;
 /// transform leaves the free run unchanged) Levenberg-Marquardt can keep accepting steps that
 /// each gain a little; this ends the creep, not a descent that still makes progress, so the
 /// iteration cap can be generous.
-fn stalled(history: &[f64]) -> bool {
+pub fn stalled(history: &[f64]) -> bool {
     let k = history.len();
     if k <= STALL_WINDOW {
         return false;
@@ -237,17 +237,11 @@ pub fn refine_d_columns(
     let mut theta = pack(model, &x0, d_cols);
     // signals that read the output at the same sample must stay out of the output equation
     // (SignalMap::check_loops): their D columns and C^(i), D^(i) are held at zero
-    let now = |l: &crate::model::Loop| l.own.iter().any(|o| o.factor.delay == 0);
-    let zero_d: Vec<usize> = fb
-        .inputs
-        .iter()
-        .filter(|(_, l)| now(l))
-        .map(|(i, _)| *i)
-        .collect();
+    let zero_d = fb.same_sample_inputs();
     let zero_q: Vec<usize> = fb
         .scheduling
         .iter()
-        .filter(|(_, l)| now(l))
+        .filter(|(_, l)| l.reads_same_sample())
         .map(|(q, _)| q + 1)
         .collect();
     let unpack = |th: &[f64]| {

@@ -473,12 +473,7 @@ pub fn fit_nested(
     let sig = spec.signals.evaluate(train)?;
     let fb = spec.signals.feedback(train)?;
     let r = sig.u.ncols();
-    let now: Vec<usize> = fb
-        .inputs
-        .iter()
-        .filter(|(_, lp)| lp.own.iter().any(|o| o.factor.delay == 0))
-        .map(|(i, _)| *i)
-        .collect();
+    let now = fb.same_sample_inputs();
     let d_cols: Vec<usize> = (0..r)
         .filter(|&j| !now.contains(&j) && (constant_column(&sig.u, j) || spec.opts.feedthrough))
         .collect();
