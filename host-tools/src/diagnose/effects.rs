@@ -570,10 +570,7 @@ pub fn candidates(ctx: &Context<'_>) -> (Vec<Candidate>, Vec<(Effect, String)>, 
             .or_else(|| {
                 // an own-output candidate is fitted with the output-error refinement: its null
                 // is the model's structure fitted the same way (diagnose/output.rs)
-                (effect == Effect::OutputNonlinearity).then(|| Spec {
-                    refined: true,
-                    ..ctx.spec.clone()
-                })
+                (effect == Effect::OutputNonlinearity).then(|| refined_null(ctx.spec))
             })
             // a structure refined from the refined fit of the model's own structure
             // (refit::fit_nested) is judged against that refined structure
@@ -1068,10 +1065,10 @@ pub fn candidates(ctx: &Context<'_>) -> (Vec<Candidate>, Vec<(Effect, String)>, 
     (out, na, skipped)
 }
 
-/// The model's own structure fitted with the output-error refinement: the null of the
-/// scheduling effects' refined variants ([`super::refit::fit_nested`]) and of the
-/// output-nonlinearity candidates.
-fn refined_null(spec: &Spec) -> Spec {
+/// The structure `spec` fitted with the output-error refinement: the null of the scheduling
+/// effects' refined variants ([`super::refit::fit_nested`]) and of the output-nonlinearity
+/// candidates, and the larger past window refined for an own-output finding.
+pub fn refined_null(spec: &Spec) -> Spec {
     Spec {
         refined: true,
         nested_in: None,

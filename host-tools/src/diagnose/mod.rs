@@ -657,11 +657,7 @@ pub fn diagnose_with_progress(
                     .any(|(b, ok)| *ok && b.0 == Effect::OutputNonlinearity)
             })
             .and_then(|l| {
-                let sp = Spec {
-                    refined: true,
-                    ..l.spec.clone()
-                };
-                fit_spec(&sp, train, &current.fit)
+                fit_spec(&effects::refined_null(&l.spec), train, &current.fit)
                     .ok()
                     .and_then(|f| Eval::new(&f.model, val).ok())
             });
