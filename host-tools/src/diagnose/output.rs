@@ -31,6 +31,14 @@ use crate::model::{describe, Factor, FactorFn, ModelFile, ModelKind};
 /// 0.490 -> 0.437 V with x0 estimated; docs/benchmarks-measured.md).
 pub const REFINE_ITERATIONS: usize = 500;
 
+/// The iteration ceiling of a refinement with `parameters` parameters over `residuals`
+/// residual values: an operations budget of 5e9 for the Gauss-Newton normal matrices
+/// (parameters^2 x residuals per iteration), within 5..=[`REFINE_ITERATIONS`].
+pub fn refine_iterations(parameters: f64, residuals: usize) -> usize {
+    let budget = 5e9 / (parameters * parameters * residuals.max(1) as f64);
+    (budget as usize).clamp(5, REFINE_ITERATIONS)
+}
+
 fn own(col: &str, pow: f64, func: Option<FactorFn>) -> Factor {
     Factor {
         pow,
@@ -167,8 +175,7 @@ pub fn fit(spec: &Spec, train: &Dataset, base_fit: &Value) -> Result<Fitted, Ref
         spec.signals.m(),
     );
     let np = (m * n * (n + r) + l * n + n) as f64;
-    let budget = 5e9 / (np * np * (train.len() * l) as f64);
-    let iters = (budget as usize).clamp(5, REFINE_ITERATIONS);
+    let iters = refine_iterations(np, train.len() * l);
     let mut opts = spec.opts.clone();
     // the null structure of a candidate: refined the same way (refit::Spec::refined)
     opts.refine |= spec.refined;

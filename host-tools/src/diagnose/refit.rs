@@ -480,8 +480,7 @@ pub fn fit_nested(
     // the null's iteration budget (diagnose/output.rs): fewer iterations for large models
     let n = start.n();
     let np = (m * n * (n + r) + start.c.len() * sig.y.ncols() * n + n) as f64;
-    let budget = 5e9 / (np * np * (train.len() * sig.y.ncols()).max(1) as f64);
-    let iters = (budget as usize).clamp(5, super::output::REFINE_ITERATIONS);
+    let iters = super::output::refine_iterations(np, train.len() * sig.y.ncols());
     let rf = crate::refine::refine_d_columns(&start, &sig, &fb, &d_cols, iters);
     let mut model = rf.model;
     // K is the null's (as fit_map)
