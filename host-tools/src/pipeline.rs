@@ -96,42 +96,20 @@ pub fn identify(
     let cands = pbsid::state_candidates(&sig, val_sig.as_ref(), opts).map_err(fit_error)?;
     let fit = cands.realize(&sig, opts, None).map_err(fit_error)?;
     // --order auto: never an order whose held-out free run is far worse than order + 1 or + 2
-    let names: Vec<String> = map.scheduling.iter().skip(1).map(|p| describe(p)).collect();
-    let observe = |fit: &PbsidFit, opts: &PbsidOptions| {
-        observer::observer_step(
-            &fit.model,
-            fit.states.as_ref(),
-            &sig,
-            opts.past,
-            &names,
-            &settings.observer,
-            // --refine replaced A, B, C, D (it runs inside the fit, before the observer step)
-            matches!(fit.refinement, Some((before, after, _)) if after < before),
-        )
-        .map_err(Error::observer)
-    };
-    // the order check and the observer step of the gap order's fit run side by side (two
-    // cores); the observer step is redone only when the check changes the order
-    let (checked, first_obs) = if runs_order_check(opts) {
-        std::thread::scope(|sc| {
-            let h = sc.spawn(|| observe(&fit, opts));
-            let checked = check_order(ds, val, opts, &fit, &cands, &map, &sig);
-            let obs = h.join().unwrap_or_else(|e| std::panic::resume_unwind(e));
-            (checked, Some(obs))
-        })
-    } else {
-        (Ok((None, None)), None)
-    };
-    let (changed, order_check) = checked?;
-    let (fit, checked_opts, first_obs) = match changed {
-        Some((f2, op)) => (f2, op, None),
-        None => (fit, opts.clone(), first_obs),
-    };
+    let (fit, checked_opts, order_check) = check_order(ds, val, opts, fit, &cands, &map, &sig)?;
     let opts = &checked_opts;
-    let obs_step = match first_obs {
-        Some(o) => o?,
-        None => observe(&fit, opts)?,
-    };
+    let names: Vec<String> = map.scheduling.iter().skip(1).map(|p| describe(p)).collect();
+    let obs_step = observer::observer_step(
+        &fit.model,
+        fit.states.as_ref(),
+        &sig,
+        opts.past,
+        &names,
+        &settings.observer,
+        // --refine replaced A, B, C, D (it runs inside the fit, before the observer step)
+        matches!(fit.refinement, Some((before, after, _)) if after < before),
+    )
+    .map_err(Error::observer)?;
     let mut record = pbsid_fit_record(opts, &fit, train.record());
     if let (Some(c), Value::Object(m)) = (order_check, &mut record) {
         m.insert("order_check".into(), c);
@@ -142,17 +120,11 @@ pub fn identify(
         signals: map,
         fit: record,
     };
-    // the two free-run scores side by side (two cores)
-    let (train_score, val_score) = match val {
-        Some(v) => std::thread::scope(|sc| {
-            let h = sc.spawn(|| score(&model, v, Mode::FreeRun));
-            let t = score(&model, ds, Mode::FreeRun);
-            let v = h.join().unwrap_or_else(|e| std::panic::resume_unwind(e));
-            (t, v.map(Some))
-        }),
-        None => (score(&model, ds, Mode::FreeRun), Ok(None)),
+    let train_score = score(&model, ds, Mode::FreeRun)?;
+    let val_score = match val {
+        Some(v) => Some(score(&model, v, Mode::FreeRun)?),
+        None => None,
     };
-    let (train_score, val_score) = (train_score?, val_score?);
     let warnings = pbsid_warnings(opts, &fit, &obs_step, &train_score, val_score.as_ref());
     Ok(Identified {
         warnings,
@@ -200,36 +172,18 @@ pub fn held_out_error(model: &ModelFile, ds: &Dataset) -> Result<f64, Error> {
 /// with that order fixed (so its record's order rule is the number, and diagnose's refits
 /// reproduce it). Returns the fit, the options it used and the check's
 /// record (None when the order was given or there is too little data to hold out).
-/// What [`check_order`] returns: the changed fit with its options, and the check's record.
-type OrderChecked = (Option<(PbsidFit, PbsidOptions)>, Option<Value>);
-
-/// Whether [`check_order`] looks at the order (`--order auto`, not BPDN).
-fn runs_order_check(opts: &PbsidOptions) -> bool {
-    opts.order == pbsid::Order::Auto && !matches!(opts.reg, Reg::BpdnAic | Reg::BpdnSv)
-}
-
-/// The free-run check of `--order auto` ([`pbsid::free_run_order`]): the orders n, n + 1,
-/// n + 2 from the singular-value gap are realized from one regression (the fit's own
-/// `fit_cands` when a validation file is given, else one on the first four fifths of the
-/// training file: [`pbsid::StateCandidates`]) and scored in free run on held-out data (the
-/// last fifth, or the validation file) from an estimated initial state; the gap's order stays
-/// unless it is far worse than a larger one. A changed order is realized from `fit_cands`
-/// with that order fixed (so its record's order rule is the number, and diagnose's refits
-/// reproduce it). Returns the changed fit with the options it used (None: `fit` stays) and
-/// the check's record (None when the order was given or there is too little data to hold
-/// out).
 #[allow(clippy::too_many_arguments)]
 fn check_order(
     ds: &Dataset,
     val: Option<&Dataset>,
     opts: &PbsidOptions,
-    fit: &PbsidFit,
+    fit: PbsidFit,
     fit_cands: &pbsid::StateCandidates,
     map: &SignalMap,
     sig: &Signals,
-) -> Result<OrderChecked, Error> {
-    if !runs_order_check(opts) {
-        return Ok((None, None));
+) -> Result<(PbsidFit, PbsidOptions, Option<Value>), Error> {
+    if opts.order != pbsid::Order::Auto || matches!(opts.reg, Reg::BpdnAic | Reg::BpdnSv) {
+        return Ok((fit, opts.clone(), None));
     }
     let n_rows = ds.len();
     let (fit_sig, hold, held) = match val {
@@ -237,7 +191,7 @@ fn check_order(
         None => {
             let cut = n_rows - n_rows / 5;
             if n_rows / 5 < 100 || cut < 10 * (opts.past + 3) {
-                return Ok((None, None));
+                return Ok((fit, opts.clone(), None));
             }
             let tail = Dataset {
                 source: format!("{} (last fifth)", ds.source),
@@ -265,7 +219,7 @@ fn check_order(
                 own = c;
                 (&own, head)
             }
-            Err(_) => return Ok((None, None)),
+            Err(_) => return Ok((fit, opts.clone(), None)),
         },
     };
     // with a validation file and no --refine the fit's own model is the gap order's
@@ -298,7 +252,7 @@ fn check_order(
         "rule": format!("an order is replaced by order + 1 or + 2 when its held-out free-run error is more than {} times theirs and {} above (normalised MSE)", pbsid::FAR_WORSE_RATIO, pbsid::FAR_WORSE_GAP),
     });
     if n == n0 {
-        return Ok((None, Some(record)));
+        return Ok((fit, opts.clone(), Some(record)));
     }
     let mut op = opts.clone();
     op.order = pbsid::Order::Fixed(n);
@@ -317,7 +271,7 @@ fn check_order(
         fit.order_reason,
         words.join(", ")
     );
-    Ok((Some((f2, op)), Some(record)))
+    Ok((f2, op, Some(record)))
 }
 
 /// A model fitted to a signal map that may read the model's own output ([`fit_map`]).

@@ -277,32 +277,16 @@ pub(super) fn run(a: &PbsidArgs, ui: Ui, out: &mut dyn Write) -> Result<(), CliE
         },
     };
     let spin = ui.spinner(&format!("reading {}", train_path.display()));
+    let val = match &a.val {
+        Some(p) => {
+            spin.set_message(format!("reading {}", p.display()));
+            Some(Dataset::read_csv(p)?)
+        }
+        None => None,
+    };
     // a large training file with options that need only the statistics is streamed in
     // chunks (constant memory); anything else, and any trouble, reads it whole
-    let stream = crate::stream::should_stream(train_path, &settings);
-    // read whole, the training file is read beside the validation file (two cores); a
-    // validation file's error is reported first, as when they were read one after the other
-    let (val, train) = match (&a.val, stream) {
-        (Some(p), false) => {
-            spin.set_message(format!(
-                "reading {} and {}",
-                p.display(),
-                train_path.display()
-            ));
-            let (v, t) = std::thread::scope(|sc| {
-                let h = sc.spawn(|| DataFile::read(train_path));
-                let v = Dataset::read_csv(p);
-                (v, h.join().unwrap_or_else(|e| std::panic::resume_unwind(e)))
-            });
-            (Some(v?), Some(t))
-        }
-        (Some(p), true) => {
-            spin.set_message(format!("reading {}", p.display()));
-            (Some(Dataset::read_csv(p)?), None)
-        }
-        (None, _) => (None, None),
-    };
-    let streamed = if stream {
+    let streamed = if crate::stream::should_stream(train_path, &settings) {
         spin.set_message(format!(
             "fitting LPV-PBSID_opt (p = {past}) streaming {}",
             train_path.display()
@@ -314,13 +298,8 @@ pub(super) fn run(a: &PbsidArgs, ui: Ui, out: &mut dyn Write) -> Result<(), CliE
     let run = match streamed {
         Some(run) => Ok(run),
         None => {
-            let train = match train {
-                Some(t) => t?,
-                None => {
-                    spin.set_message(format!("reading {}", train_path.display()));
-                    DataFile::read(train_path)?
-                }
-            };
+            spin.set_message(format!("reading {}", train_path.display()));
+            let train = DataFile::read(train_path)?;
             spin.set_message(format!(
                 "fitting LPV-PBSID_opt (p = {}, {} samples)",
                 past,
