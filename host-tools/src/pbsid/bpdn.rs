@@ -537,67 +537,23 @@ fn dot(a: &[f64], b: &[f64]) -> f64 {
     a.iter().zip(b).map(|(x, y)| x * y).sum()
 }
 
-/// x_i = row i of `state` (n rows of length w = v.len(), row-major) times `v`, each row
-/// summed left to right from -0.0 as [`dot`] sums it (the same bits), four rows (then two)
-/// per pass over v: one load of v_j serves four independent sums (the scorer's state
-/// update was most of its instructions, callgrind).
-#[inline(always)]
-#[allow(clippy::needless_range_loop)]
-fn state_rows(state: &[f64], v: &[f64], x: &mut [f64]) {
-    let w = v.len();
-    let n = x.len();
-    let mut i = 0;
-    while i + 4 <= n {
-        let r0 = &state[i * w..][..w];
-        let r1 = &state[(i + 1) * w..][..w];
-        let r2 = &state[(i + 2) * w..][..w];
-        let r3 = &state[(i + 3) * w..][..w];
-        let (mut s0, mut s1, mut s2, mut s3) = (-0.0, -0.0, -0.0, -0.0);
-        for j in 0..w {
-            let vj = v[j];
-            s0 += r0[j] * vj;
-            s1 += r1[j] * vj;
-            s2 += r2[j] * vj;
-            s3 += r3[j] * vj;
-        }
-        x[i] = s0;
-        x[i + 1] = s1;
-        x[i + 2] = s2;
-        x[i + 3] = s3;
-        i += 4;
-    }
-    if i + 2 <= n {
-        let r0 = &state[i * w..][..w];
-        let r1 = &state[(i + 1) * w..][..w];
-        let (mut s0, mut s1) = (-0.0, -0.0);
-        for j in 0..w {
-            let vj = v[j];
-            s0 += r0[j] * vj;
-            s1 += r1[j] * vj;
-        }
-        x[i] = s0;
-        x[i + 1] = s1;
-        i += 2;
-    }
-    if i < n {
-        x[i] = dot(&state[i * w..][..w], v);
-    }
-}
-
 /// An LPV model's free run packed for the scorer: the state equation as one row-major
 /// n x m(n + r) matrix [A^(1) B^(1) | ... | A^(m) B^(m)] applied to mu (x) [x; u], the output
 /// equation as one l x (c(n) + d(r)) matrix [C^(1) .. | D^(1) ..] applied to the scheduled
-/// copies of x and u (one C or D: parameter-independent). A step is then n + l contiguous
-/// dot products; `LpvSs::state_into` / `output_into` walk the column-major matrices with
-/// bounds checks (BPDN-SV's scorer was half of a B2 BPDN-SV fit's instructions, callgrind).
-/// The sums are the same up to the order of the additions.
+/// copies of x and u (one C or D: parameter-independent). The state matrix is stored by
+/// columns, so a step adds w = m(n + r) scaled columns of length n into the new state: each
+/// x_i is still summed over j = 0..w in order from -0.0 (the sums of a row-by-row dot
+/// product, to the bit), but the n sums run side by side in vector lanes; orders 1..=8 are
+/// compiled with n fixed (the state in registers). `LpvSs::state_into` / `output_into` walk
+/// the column-major matrices with bounds checks (BPDN-SV's scorer was half of a B2 BPDN-SV
+/// fit's instructions, callgrind).
 pub struct FreeRun {
     n: usize,
     r: usize,
     l: usize,
     m: usize,
-    /// Row i: [A^(1)_i B^(1)_i ... A^(m)_i B^(m)_i].
-    state: Vec<f64>,
+    /// Column j of [A^(1) B^(1) ... A^(m) B^(m)] at j n .. (j + 1) n (w columns).
+    state_t: Vec<f64>,
     /// Row j: [C^(1)_j ... C^(c)_j D^(1)_j ... D^(d)_j].
     output: Vec<f64>,
     /// Numbers of C and D matrices.
@@ -611,16 +567,16 @@ impl FreeRun {
         let (n, r, l, m) = (model.n(), model.r(), model.l(), model.m());
         let (nc, nd) = (model.c.len(), model.d.len());
         let w = m * (n + r);
-        let mut state = vec![0.0; n * w];
-        for i in 0..n {
-            let row = &mut state[i * w..(i + 1) * w];
-            for s in 0..m {
-                let (a, b) = row[s * (n + r)..(s + 1) * (n + r)].split_at_mut(n);
-                for (c, dst) in a.iter_mut().enumerate() {
-                    *dst = model.a[s][(i, c)];
-                }
-                for (c, dst) in b.iter_mut().enumerate() {
-                    *dst = model.b[s][(i, c)];
+        let mut state_t = vec![0.0; n * w];
+        for s in 0..m {
+            for c in 0..n + r {
+                let col = &mut state_t[(s * (n + r) + c) * n..][..n];
+                for (i, dst) in col.iter_mut().enumerate() {
+                    *dst = if c < n {
+                        model.a[s][(i, c)]
+                    } else {
+                        model.b[s][(i, c - n)]
+                    };
                 }
             }
         }
@@ -645,7 +601,7 @@ impl FreeRun {
             r,
             l,
             m,
-            state,
+            state_t,
             output,
             nc,
             nd,
@@ -655,28 +611,120 @@ impl FreeRun {
     /// The squared free-run error on `rec` from x0 = 0, +inf once it reaches `bound` or
     /// the state diverges (non-finite or beyond 1e150, as `LpvSs::simulate` marks it).
     pub fn error_below(&self, rec: &ScoredRecord, bound: f64) -> f64 {
-        let (n, r, l, m) = (self.n, self.r, self.l, self.m);
         assert!(
-            rec.s + 1 == m && rec.r == r && rec.l == l,
+            rec.s + 1 == self.m && rec.r == self.r && rec.l == self.l,
             "record and model differ in size"
         );
-        let w = m * (n + r);
-        let wo = self.nc * n + self.nd * r;
-        let mut x = vec![0.0; n];
-        let mut v = vec![0.0; w];
-        let mut vo = vec![0.0; wo];
+        match self.n {
+            1 => self.run_fixed::<1>(rec, bound),
+            2 => self.run_fixed::<2>(rec, bound),
+            3 => self.run_fixed::<3>(rec, bound),
+            4 => self.run_fixed::<4>(rec, bound),
+            5 => self.run_fixed::<5>(rec, bound),
+            6 => self.run_fixed::<6>(rec, bound),
+            7 => self.run_fixed::<7>(rec, bound),
+            8 => self.run_fixed::<8>(rec, bound),
+            n => self.run(rec, bound, vec![0.0; n]),
+        }
+    }
+
+    /// [`FreeRun::run`] with the order N fixed at compile time: the state and the new
+    /// state are arrays (registers), the columns N-arrays; the same products summed in the
+    /// same order (the same bits, test `fixed_order_scorer_is_the_general_one`).
+    fn run_fixed<const N: usize>(&self, rec: &ScoredRecord, bound: f64) -> f64 {
+        let (r, l, m) = (self.r, self.l, self.m);
+        let wo = self.nc * N + self.nd * r;
         let mut mu = vec![0.0; m];
         mu[0] = 1.0;
+        let mut x = [0.0; N];
         let samples = rec.len();
         let mut err = 0.0;
         for (k, row) in rec.rows.chunks_exact((rec.s + r + l).max(1)).enumerate() {
             let (sched, rest) = row.split_at(rec.s);
             let (u, y) = rest.split_at(r);
             mu[1..].copy_from_slice(sched);
+            // y_j = row j of the output matrix times [w x ..; w u ..], summed in order
+            for (yj, orow) in y.iter().zip(self.output.chunks_exact(wo.max(1))) {
+                let (oc, od) = orow.split_at(self.nc * N);
+                let mut e = -0.0;
+                for (i, c) in oc.chunks_exact(N).map(lanes::<N>).enumerate() {
+                    // a single C or D is parameter-independent (weight 1)
+                    let wi = if self.nc > 1 { mu[i] } else { 1.0 };
+                    for (ca, xa) in c.iter().zip(&x) {
+                        e += ca * (wi * xa);
+                    }
+                }
+                for (i, d) in od.chunks_exact(r.max(1)).enumerate() {
+                    let wi = if self.nd > 1 { mu[i] } else { 1.0 };
+                    for (da, ua) in d.iter().zip(u) {
+                        e += da * (wi * ua);
+                    }
+                }
+                let e = e - yj;
+                err += e * e;
+            }
+            if err >= bound {
+                return f64::INFINITY;
+            }
+            // x+ = sum over j of column j times v_j, v = mu (x) [x; u], in the order of j
+            let mut acc = [-0.0; N];
+            for (blk, &wi) in self.state_t.chunks_exact((N + r) * N).zip(&mu) {
+                let (bx, bu) = blk.split_at(N * N);
+                for (col, &xv) in bx.chunks_exact(N).zip(&x) {
+                    let v = wi * xv;
+                    for (s, a) in acc.iter_mut().zip(col) {
+                        *s += a * v;
+                    }
+                }
+                for (col, &uv) in bu.chunks_exact(N).zip(u) {
+                    let v = wi * uv;
+                    for (s, a) in acc.iter_mut().zip(col) {
+                        *s += a * v;
+                    }
+                }
+            }
+            x = acc;
+            // diverged: non-finite or beyond 1e150 (an infinity is beyond)
+            let mut diverged = false;
+            for xi in &x {
+                diverged |= xi.is_nan() | (xi.abs() > 1e150);
+            }
+            if diverged && k + 1 < samples {
+                return f64::INFINITY;
+            }
+        }
+        if err.is_finite() {
+            err
+        } else {
+            f64::INFINITY
+        }
+    }
+
+    /// The free run with the state in `x`, any order.
+    fn run<X: AsMut<[f64]> + AsRef<[f64]> + Clone>(
+        &self,
+        rec: &ScoredRecord,
+        bound: f64,
+        mut x: X,
+    ) -> f64 {
+        let (r, l, m) = (self.r, self.l, self.m);
+        let n = x.as_ref().len();
+        let wo = self.nc * n + self.nd * r;
+        let mut vo = vec![0.0; wo];
+        let mut mu = vec![0.0; m];
+        mu[0] = 1.0;
+        let mut next = x.clone();
+        let samples = rec.len();
+        let mut err = 0.0;
+        for (k, row) in rec.rows.chunks_exact((rec.s + r + l).max(1)).enumerate() {
+            let (sched, rest) = row.split_at(rec.s);
+            let (u, y) = rest.split_at(r);
+            mu[1..].copy_from_slice(sched);
+            let xs = x.as_ref();
             // a single C or D is parameter-independent (weight 1)
             for i in 0..self.nc {
                 let wi = if self.nc > 1 { mu[i] } else { 1.0 };
-                for (dst, xv) in vo[i * n..(i + 1) * n].iter_mut().zip(&x) {
+                for (dst, xv) in vo[i * n..(i + 1) * n].iter_mut().zip(xs) {
                     *dst = wi * xv;
                 }
             }
@@ -694,19 +742,23 @@ impl FreeRun {
             if err >= bound {
                 return f64::INFINITY;
             }
-            for (blk, &wi) in v.chunks_exact_mut((n + r).max(1)).zip(&mu) {
-                let (bx, bu) = blk.split_at_mut(n);
-                for (dst, xv) in bx.iter_mut().zip(&x) {
-                    *dst = wi * xv;
+            // x+ = sum over j of column j times v_j, v = mu (x) [x; u], in the order of j
+            let acc = next.as_mut();
+            acc.fill(-0.0);
+            let mut cols = self.state_t.chunks_exact(n.max(1));
+            for &wi in &mu {
+                for &xv in xs.iter() {
+                    axpy(acc, cols.next().unwrap_or(&[]), wi * xv);
                 }
-                for (dst, uv) in bu.iter_mut().zip(u) {
-                    *dst = wi * uv;
+                for &uv in u {
+                    axpy(acc, cols.next().unwrap_or(&[]), wi * uv);
                 }
             }
-            state_rows(&self.state, &v, &mut x);
+            core::mem::swap(&mut x, &mut next);
+            // diverged: non-finite or beyond 1e150 (an infinity is beyond)
             let mut diverged = false;
-            for xi in &x {
-                diverged |= !xi.is_finite() || xi.abs() > 1e150;
+            for xi in x.as_ref() {
+                diverged |= xi.is_nan() | (xi.abs() > 1e150);
             }
             if diverged && k + 1 < samples {
                 return f64::INFINITY;
@@ -717,6 +769,20 @@ impl FreeRun {
         } else {
             f64::INFINITY
         }
+    }
+}
+
+/// A slice of N entries as an array.
+#[inline(always)]
+fn lanes<const N: usize>(a: &[f64]) -> &[f64; N] {
+    a.try_into().expect("a slice of N entries")
+}
+
+/// acc += a * c, element by element (the lanes of the state update).
+#[inline(always)]
+fn axpy(acc: &mut [f64], a: &[f64], c: f64) {
+    for (s, ai) in acc.iter_mut().zip(a) {
+        *s += ai * c;
     }
 }
 
@@ -1003,6 +1069,45 @@ mod tests {
                 assert!((got - want).abs() <= 1e-12 * want, "{got} vs {want}");
             } else {
                 assert_eq!(got, f64::INFINITY);
+            }
+        }
+    }
+
+    /// The scorer compiled for a fixed order gives the general scorer's bits, on models of
+    /// orders 1..=9 with one and two C and D matrices (B3: two inputs and outputs).
+    #[test]
+    fn fixed_order_scorer_is_the_general_one() {
+        let b3 = crate::systems::b3(120, 3);
+        let truth = crate::systems::b3_truth();
+        let (r, l, m) = (truth.r(), truth.l(), truth.m());
+        let record = ScoredRecord::new(&b3.train, m);
+        for n in 1..=9 {
+            for varying in [false, true] {
+                let mut model = truth.clone();
+                let f = |i: usize, j: usize, s: usize| {
+                    0.9 / n as f64 * ((i * 7 + j * 3 + s * 5 + n) as f64).sin()
+                };
+                model.a = (0..m)
+                    .map(|s| DMatrix::from_fn(n, n, |i, j| f(i, j, s)))
+                    .collect();
+                model.b = (0..m)
+                    .map(|s| DMatrix::from_fn(n, r, |i, j| f(i + 11, j, s)))
+                    .collect();
+                model.k = (0..m).map(|_| DMatrix::zeros(n, l)).collect();
+                let k = if varying { m } else { 1 };
+                model.c = (0..k)
+                    .map(|s| DMatrix::from_fn(l, n, |i, j| f(i + 5, j, s)))
+                    .collect();
+                model.d = (0..k)
+                    .map(|s| DMatrix::from_fn(l, r, |i, j| f(i + 9, j, s)))
+                    .collect();
+                let run = FreeRun::new(&model);
+                let fixed = run.error_below(&record, f64::INFINITY);
+                let general = run.run(&record, f64::INFINITY, vec![0.0; n]);
+                assert!(fixed.is_finite(), "n = {n}");
+                assert_eq!(fixed.to_bits(), general.to_bits(), "n = {n}, {varying}");
+                let half = run.error_below(&record, 0.5 * fixed);
+                assert_eq!(half, f64::INFINITY, "n = {n}");
             }
         }
     }
