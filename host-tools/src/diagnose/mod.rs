@@ -688,12 +688,20 @@ pub fn diagnose_with_progress(
             |j: usize| vs_larger[j].is_none_or(|v| effects::beats_user(v, tried, short));
         let sig: Vec<bool> = (0..best.len()).map(|j| passed[j] && larger_ok(j)).collect();
         let larger_detail = larger.as_ref().map_or(String::new(), |l| l.detail.clone());
-        // a noise model cannot explain the part of the residual an input-driven effect does
+        // a noise model cannot explain the part of the residual an input-driven effect does;
+        // that part as a fraction of coloured-noise's null, the model's structure refit (a
+        // variant judged against its own null, e.g. refined, by what it explains of that
+        // refit: fractions of different nulls are not compared)
         let det_best = best
             .iter()
+            .enumerate()
             .zip(&sig)
-            .filter(|(b, sg)| b.0.metric() == Mode::FreeRun && **sg)
-            .map(|(b, _)| scored[b.1].explained.clamp(0.0, 1.0))
+            .filter(|((_, b), sg)| b.0.metric() == Mode::FreeRun && **sg)
+            .map(|((j, b), _)| {
+                vs_user[j]
+                    .map_or(scored[b.1].explained, |v| v.0)
+                    .clamp(0.0, 1.0)
+            })
             .fold(0.0, f64::max);
         let mut findings: Vec<(Finding, usize)> = best
             .iter()
