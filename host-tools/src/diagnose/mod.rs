@@ -310,6 +310,22 @@ fn score_all(
 /// Parsimony among the significant findings ([`effects::prefer_simpler`]): a simpler
 /// significant finding that the first one does not beat head to head is put first, with
 /// the reason in its evidence.
+/// The significant findings ranked on their own held-out errors ([`effects::rank_by_own_error`]),
+/// the rest kept in place.
+fn rank_by_own_error(findings: &mut [(Finding, usize)], scored: &[Scored]) {
+    let k = findings.iter().take_while(|f| f.0.significant).count();
+    let mut order: Vec<usize> = findings[..k].iter().map(|f| f.1).collect();
+    effects::rank_by_own_error(&mut order, scored);
+    let mut rest: Vec<Option<(Finding, usize)>> = findings[..k].iter().cloned().map(Some).collect();
+    for (slot, i) in order.into_iter().enumerate() {
+        let from = rest
+            .iter()
+            .position(|f| f.as_ref().is_some_and(|f| f.1 == i))
+            .expect("a finding of the order");
+        findings[slot] = rest[from].take().expect("taken once");
+    }
+}
+
 fn prefer_simpler_first(findings: &mut Vec<(Finding, usize)>, scored: &[Scored], tried: usize) {
     let order: Vec<usize> = findings
         .iter()
@@ -489,19 +505,9 @@ pub fn diagnose_with_progress(
                 ),
             )
         };
-        // best variant per effect
-        let mut best: Vec<(Effect, usize, usize)> = Vec::new(); // effect, index, variants
-        for (i, s) in scored.iter().enumerate() {
-            match best.iter_mut().find(|b| b.0 == s.cand.effect) {
-                Some(b) => {
-                    b.2 += 1;
-                    if s.explained > scored[b.1].explained {
-                        b.1 = i;
-                    }
-                }
-                None => best.push((s.cand.effect, i, 1)),
-            }
-        }
+        // the variant that represents each effect (effect, index, variants): the lowest
+        // held-out error among its significant variants (effects::best_variants)
+        let best = effects::best_variants(&scored, tried);
         // a short held-out record: blocked cross-validation over the record the diagnosis
         // sees (effects::cv_folds): the held-out batches pooled with those of the training
         // folds in one test, and the folds' agreement is the replication
@@ -682,12 +688,20 @@ pub fn diagnose_with_progress(
             |j: usize| vs_larger[j].is_none_or(|v| effects::beats_user(v, tried, short));
         let sig: Vec<bool> = (0..best.len()).map(|j| passed[j] && larger_ok(j)).collect();
         let larger_detail = larger.as_ref().map_or(String::new(), |l| l.detail.clone());
-        // a noise model cannot explain the part of the residual an input-driven effect does
+        // a noise model cannot explain the part of the residual an input-driven effect does;
+        // that part as a fraction of coloured-noise's null, the model's structure refit (a
+        // variant judged against its own null, e.g. refined, by what it explains of that
+        // refit: fractions of different nulls are not compared)
         let det_best = best
             .iter()
+            .enumerate()
             .zip(&sig)
-            .filter(|(b, sg)| b.0.metric() == Mode::FreeRun && **sg)
-            .map(|(b, _)| scored[b.1].explained.clamp(0.0, 1.0))
+            .filter(|((_, b), sg)| b.0.metric() == Mode::FreeRun && **sg)
+            .map(|((j, b), _)| {
+                vs_user[j]
+                    .map_or(scored[b.1].explained, |v| v.0)
+                    .clamp(0.0, 1.0)
+            })
             .fold(0.0, f64::max);
         let mut findings: Vec<(Finding, usize)> = best
             .iter()
@@ -748,6 +762,7 @@ pub fn diagnose_with_progress(
                 .cmp(&a.0.significant)
                 .then(b.0.explained.total_cmp(&a.0.explained))
         });
+        rank_by_own_error(&mut findings, &scored);
         prefer_simpler_first(&mut findings, &scored, tried);
         // the rule that blocked each finding, for the stop line and the summary (human text
         // and JSON say the same)
