@@ -307,25 +307,18 @@ fn score_all(
     results.into_iter().flatten().collect()
 }
 
-/// Parsimony among the significant findings ([`effects::prefer_simpler`]): a simpler
-/// significant finding that the first one does not beat head to head is put first, with
-/// the reason in its evidence.
 /// The significant findings ranked on their own held-out errors ([`effects::rank_by_own_error`]),
 /// the rest kept in place.
 fn rank_by_own_error(findings: &mut [(Finding, usize)], scored: &[Scored]) {
     let k = findings.iter().take_while(|f| f.0.significant).count();
     let mut order: Vec<usize> = findings[..k].iter().map(|f| f.1).collect();
     effects::rank_by_own_error(&mut order, scored);
-    let mut rest: Vec<Option<(Finding, usize)>> = findings[..k].iter().cloned().map(Some).collect();
-    for (slot, i) in order.into_iter().enumerate() {
-        let from = rest
-            .iter()
-            .position(|f| f.as_ref().is_some_and(|f| f.1 == i))
-            .expect("a finding of the order");
-        findings[slot] = rest[from].take().expect("taken once");
-    }
+    findings[..k].sort_by_key(|f| order.iter().position(|&i| i == f.1));
 }
 
+/// Parsimony among the significant findings ([`effects::prefer_simpler`]): a simpler
+/// significant finding that the first one does not beat head to head is put first, with
+/// the reason in its evidence.
 fn prefer_simpler_first(findings: &mut Vec<(Finding, usize)>, scored: &[Scored], tried: usize) {
     let order: Vec<usize> = findings
         .iter()

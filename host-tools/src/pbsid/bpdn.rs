@@ -684,20 +684,11 @@ impl FreeRun {
                 }
             }
             x = acc;
-            // diverged: non-finite or beyond 1e150 (an infinity is beyond)
-            let mut diverged = false;
-            for xi in &x {
-                diverged |= xi.is_nan() | (xi.abs() > 1e150);
-            }
-            if diverged && k + 1 < samples {
+            if diverged(&x) && k + 1 < samples {
                 return f64::INFINITY;
             }
         }
-        if err.is_finite() {
-            err
-        } else {
-            f64::INFINITY
-        }
+        finite_or_infinity(err)
     }
 
     /// The free run with the state in `x`, any order.
@@ -755,20 +746,32 @@ impl FreeRun {
                 }
             }
             core::mem::swap(&mut x, &mut next);
-            // diverged: non-finite or beyond 1e150 (an infinity is beyond)
-            let mut diverged = false;
-            for xi in x.as_ref() {
-                diverged |= xi.is_nan() | (xi.abs() > 1e150);
-            }
-            if diverged && k + 1 < samples {
+            if diverged(x.as_ref()) && k + 1 < samples {
                 return f64::INFINITY;
             }
         }
-        if err.is_finite() {
-            err
-        } else {
-            f64::INFINITY
-        }
+        finite_or_infinity(err)
+    }
+}
+
+/// A free-run state that diverged: non-finite or beyond 1e150 (an infinity is beyond); the
+/// lanes are or-ed without early exit so the check stays branch-free.
+#[inline(always)]
+fn diverged(x: &[f64]) -> bool {
+    let mut d = false;
+    for xi in x {
+        d |= xi.is_nan() | (xi.abs() > 1e150);
+    }
+    d
+}
+
+/// A free run's squared error, infinite when it is not finite (NaN included).
+#[inline(always)]
+fn finite_or_infinity(err: f64) -> f64 {
+    if err.is_finite() {
+        err
+    } else {
+        f64::INFINITY
     }
 }
 
