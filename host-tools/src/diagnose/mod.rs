@@ -17,6 +17,7 @@
 //! diagnosis).
 
 pub mod effects;
+pub mod memory;
 pub mod output;
 pub mod plants;
 pub mod plots;
@@ -679,7 +680,28 @@ pub fn diagnose_with_progress(
             .collect();
         let larger_ok =
             |j: usize| vs_larger[j].is_none_or(|v| effects::beats_user(v, tried, short));
-        let sig: Vec<bool> = (0..best.len()).map(|j| passed[j] && larger_ok(j)).collect();
+        // a fix must forget its initial state as the model's structure refit does
+        // (memory::forgets_as_null): its score from the state estimated on the first held-out
+        // samples must not lean on that state at the end of the record
+        let base_memory = memory::memory(&base.model, val, &base_eval).ok();
+        let memories: Vec<Option<memory::Memory>> = best
+            .iter()
+            .enumerate()
+            .map(|(j, b)| {
+                if !(passed[j] && larger_ok(j)) || b.0.metric() != Mode::FreeRun {
+                    return None;
+                }
+                let s = &scored[b.1];
+                memory::memory(&s.fitted.as_ref()?.model, val, s.eval.as_ref()?).ok()
+            })
+            .collect();
+        let memory_ok = |j: usize| match (&memories[j], &base_memory) {
+            (Some(c), Some(n)) => memory::forgets_as_null(c, n),
+            _ => true,
+        };
+        let sig: Vec<bool> = (0..best.len())
+            .map(|j| passed[j] && larger_ok(j) && memory_ok(j))
+            .collect();
         let larger_detail = larger.as_ref().map_or(String::new(), |l| l.detail.clone());
         // a noise model cannot explain the part of the residual an input-driven effect does;
         // that part as a fraction of coloured-noise's null, the model's structure refit (a
@@ -796,6 +818,11 @@ pub fn diagnose_with_progress(
                             ALPHA / tried.max(1) as f64
                         )
                     }
+                )
+            } else if let Some(m) = j.filter(|j| !memory_ok(*j)).and_then(|j| memories[j]) {
+                format!(
+                    "its free run leans on the initial state estimated on the first held-out samples: at the end of the held-out record that state still moves its output by {:.3} (mean square, normalised) against its own error of {:.3} there, while the model's structure refit forgets its start; a fix must not depend on where its simulation starts",
+                    m.influence, m.error
                 )
             } else if let Some((_, r)) = rep.filter(|(j, r)| !rep_ok(*j, r)).filter(|_| short) {
                 format!(
