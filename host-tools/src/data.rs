@@ -232,17 +232,27 @@ impl LineLimit {
         }
         match rest {
             Some(r) => {
-                // a sum of 0/1 rather than a filtered count: the compiler vectorises it
-                self.line += chunk
-                    .iter()
-                    .map(|&b| usize::from(b == b'\n'))
-                    .sum::<usize>();
+                self.line += count_newlines(chunk);
                 self.line_len = r;
             }
             None => self.line_len += n,
         }
         Ok(())
     }
+}
+
+/// Number of '\n' in `bytes`, counted in byte-wide sums over blocks of 255 (which cannot
+/// overflow) that the compiler vectorises 16 or 32 bytes at a time.
+fn count_newlines(bytes: &[u8]) -> usize {
+    bytes
+        .chunks(255)
+        .map(|block| {
+            let in_block = block
+                .iter()
+                .fold(0u8, |acc, &b| acc.wrapping_add(u8::from(b == b'\n')));
+            usize::from(in_block)
+        })
+        .sum()
 }
 
 /// Read `reader` to its end, stopping with an error naming the line when a line is longer
@@ -329,7 +339,7 @@ impl Dataset {
     pub fn read_csv(path: &Path) -> Result<Dataset, DataError> {
         let source = path.display().to_string();
         let bytes = read_input(path)?;
-        Dataset::parse_bytes(&source, &bytes)
+        Dataset::parse_read_input(&source, &bytes)
     }
 
     /// Parse CSV text from `reader`; `source` is the file name used in errors.
@@ -347,6 +357,13 @@ impl Dataset {
         for chunk in bytes.chunks(READ_CHUNK) {
             lines.check(source, chunk)?;
         }
+        Self::parse_checked(source, bytes)
+    }
+
+    /// [`Dataset::parse_bytes`] of what [`read_input`] returned: its lines were checked
+    /// while it read them (the check's outcome does not depend on how the bytes were split
+    /// into reads: a line within one read is shorter than the limit), so it is not repeated.
+    pub fn parse_read_input(source: &str, bytes: &[u8]) -> Result<Dataset, DataError> {
         Self::parse_checked(source, bytes)
     }
 
@@ -1203,6 +1220,9 @@ mod tests {
             Dataset::parse_bytes("l.csv", &long).unwrap_err(),
         );
         assert_eq!((e1.line, e1.message), (e2.line, e2.message));
+        let text = "a\nb\n".repeat(300) + "c";
+        assert_eq!(count_newlines(text.as_bytes()), 600);
+        assert_eq!(count_newlines(&[b'\n'; 1000]), 1000);
         assert_eq!(a.cols[1], [-1.25e-3, 7.0]);
         let body = b"1,2\n3,4\n";
         assert_eq!(
