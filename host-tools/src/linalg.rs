@@ -94,6 +94,30 @@ pub fn par_for(n: usize) -> faer::Par {
     }
 }
 
+/// Run, on a short-lived thread of its own, the one-time set-up of faer's large matrix
+/// product: its first call in a process reads the cache sizes from about a hundred sysfs
+/// files (private-gemm-x86's `cache_info`, 0.6-0.8 ms of wall time, which callgrind does not
+/// count). A command that will reduce or multiply matrices calls this first, so the reads
+/// overlap its CSV parsing instead of stalling the first product; the result is the same
+/// (the set-up is behind a `OnceLock`: a product that comes first waits for it, as before).
+pub fn prefetch_matmul_setup() {
+    let _detached = std::thread::Builder::new()
+        .name("matmul-setup".into())
+        .spawn(|| {
+            // 17^3 > faer's small-product threshold (16^3): the large-product path
+            let a = faer::Mat::<f64>::zeros(17, 17);
+            let mut c = faer::Mat::<f64>::zeros(17, 17);
+            faer::linalg::matmul::matmul(
+                c.as_mut(),
+                faer::Accum::Replace,
+                a.as_ref(),
+                a.as_ref(),
+                1.0,
+                faer::Par::Seq,
+            );
+        });
+}
+
 /// Vectors per batch of a host-side Gram update: enough for the block product to run at
 /// matrix-multiply speed, few enough that the batch stays in cache.
 pub const GRAM_BATCH: usize = 256;

@@ -268,7 +268,10 @@ impl LpvSs {
     }
 
     /// The state equation x+ = sum_i mu_i (A_i x + B_i u + K_i e) into `xn` (`e` None: no
-    /// innovation term), without allocating.
+    /// innovation term), without allocating. This runs once per sample of every simulation
+    /// (the initial-state fit runs n + 1 simulations per iteration): the matrices are read as
+    /// the column-major slices they are, not through nalgebra's two-index checks, with the
+    /// sums formed in the same order as before (bit-identical results).
     pub fn state_into(&self, mu: &[f64], x: &[f64], u: &[f64], e: Option<&[f64]>, xn: &mut [f64]) {
         xn.iter_mut().for_each(|v| *v = 0.0);
         for (i, &w) in mu.iter().enumerate().take(self.m()) {
@@ -276,17 +279,18 @@ impl LpvSs {
                 continue;
             }
             let (a, b, k) = (&self.a[i], &self.b[i], &self.k[i]);
+            let (a, b, k, rows) = (a.as_slice(), b.as_slice(), k.as_slice(), a.nrows());
             for (row, v) in xn.iter_mut().enumerate() {
                 let mut acc = 0.0;
                 for (col, xv) in x.iter().enumerate() {
-                    acc += a[(row, col)] * xv;
+                    acc += a[col * rows + row] * xv;
                 }
                 for (col, uv) in u.iter().enumerate() {
-                    acc += b[(row, col)] * uv;
+                    acc += b[col * rows + row] * uv;
                 }
                 if let Some(e) = e {
                     for (col, ev) in e.iter().enumerate() {
-                        acc += k[(row, col)] * ev;
+                        acc += k[col * rows + row] * ev;
                     }
                 }
                 *v += w * acc;

@@ -39,7 +39,7 @@ impl DataFile {
     pub fn read(path: &Path) -> Result<DataFile, DataError> {
         // refuses devices that never end and bounds pipes and line lengths
         let bytes = crate::data::read_input(path)?;
-        let data = Dataset::parse(&path.display().to_string(), &bytes[..])?;
+        let data = Dataset::parse_read_input(&path.display().to_string(), &bytes)?;
         Ok(DataFile {
             path: path.to_path_buf(),
             data,

@@ -254,8 +254,13 @@ pub fn free_run_ss_into(
     let big_n = sig.len();
     let (n, r, l, mm) = (m.n(), m.r(), m.l(), m.m());
     let s = sig.p.ncols();
-    let mut u = sig.u.clone();
-    let mut p = sig.p.clone();
+    // the feedback writes the signals it computes into copies; without feedback the
+    // record's own are read (estimate_x0 runs this n + 1 times per iteration)
+    let (mut u_fb, mut p_fb) = if fb.is_empty() {
+        (DMatrix::zeros(0, 0), DMatrix::zeros(0, 0))
+    } else {
+        (sig.u.clone(), sig.p.clone())
+    };
     let mut xn = vec![0.0; n];
     let mut uk = vec![0.0; r];
     let mut yk = vec![0.0; l];
@@ -264,8 +269,13 @@ pub fn free_run_ss_into(
         // the signals that read outputs up to k-1 (a delay-0 own value counts as 0 here: the
         // output equation does not use it, SignalMap::check_loops)
         if !fb.is_empty() {
-            fb.fill(k, out, k, &mut u, &mut p);
+            fb.fill(k, out, k, &mut u_fb, &mut p_fb);
         }
+        let (u, p) = if fb.is_empty() {
+            (&sig.u, &sig.p)
+        } else {
+            (&u_fb, &p_fb)
+        };
         for q in 0..s.min(mm - 1) {
             mu[q + 1] = p[(k, q)];
         }
@@ -279,12 +289,12 @@ pub fn free_run_ss_into(
         }
         // ... then with y_k known
         if !fb.is_empty() {
-            fb.fill(k, out, k + 1, &mut u, &mut p);
+            fb.fill(k, out, k + 1, &mut u_fb, &mut p_fb);
             for q in 0..s.min(mm - 1) {
-                mu[q + 1] = p[(k, q)];
+                mu[q + 1] = p_fb[(k, q)];
             }
             for (j, v) in uk.iter_mut().enumerate() {
-                *v = u[(k, j)];
+                *v = u_fb[(k, j)];
             }
         }
         m.state_into(&mu, x, &uk, None, &mut xn);

@@ -260,6 +260,7 @@ pub(super) fn run(a: &PbsidArgs, ui: Ui, out: &mut dyn Write) -> Result<(), CliE
     let (Some(train_path), Some(past)) = (&a.train, a.past) else {
         return super::stats::run_pbsid(a, ui, out);
     };
+    crate::linalg::prefetch_matmul_setup();
     let mut inputs = vec![("--train", train_path.as_path())];
     if let Some(v) = &a.val {
         inputs.push(("--val", v.as_path()));
