@@ -546,8 +546,12 @@ pub fn diagnose_with_progress(
             .enumerate()
             .map(|(j, b)| significant(scored[b.1].explained, p_of(j), tried))
             .collect();
-        // the variant of an effect that replicated in place of its best one
+        // the variant of an effect that replicated in place of its best one, and what the
+        // best one explained on the halves (for the evidence)
         let mut swaps: Vec<Option<usize>> = vec![None; best.len()];
+        // (its index, (explained, p) per half)
+        type Failed = (usize, Vec<(f64, f64)>);
+        let mut swapped_from: Vec<Option<Failed>> = vec![None; best.len()];
         if !short && full_sig.iter().any(|v| *v) {
             let halves = effects::halves(train);
             let nulls: Vec<Option<Eval>> = halves
@@ -568,32 +572,29 @@ pub fn diagnose_with_progress(
                         effects::replicate(&scored[i].cand, &halves, &nulls, val, &current.fit)
                     };
                     let mut r = rep(b.1);
-                    if !effects::replicated(&r) && b.0 == Effect::OutputNonlinearity {
+                    if !effects::replicated(&r) {
                         // the effect's best variant did not hold up on the halves: its next
-                        // variants that also pass the full-data threshold, best first (on the
-                        // plant family the quasi-LPV y^2 / |y| variant often explained most and
-                        // then diverged on a half, while the Lur'e variant of the same effect
-                        // replicated). Only for output-nonlinearity, whose variants share one
-                        // null (the refined model structure): the scheduling-noise variants
-                        // each have their own LPV-ARX null, and there an alternative that
-                        // explained 100 % of its own null's error replicated on the planted
-                        // output-offset plant (diagnose_planted, seed 3)
-                        let mut alts: Vec<usize> = scored
-                            .iter()
-                            .enumerate()
-                            .filter(|(i, v)| {
-                                *i != b.1
-                                    && v.cand.effect == b.0
-                                    && v.error.is_none()
-                                    && significant(v.explained, v.p_value, tried)
-                            })
-                            .map(|(i, _)| i)
-                            .collect();
-                        alts.sort_by(|x, y| scored[*y].explained.total_cmp(&scored[*x].explained));
-                        for i in alts.into_iter().take(effects::MAX_ALTERNATIVES) {
+                        // variants that pass every full-data test of a finding, lowest
+                        // held-out error first (effects::alternatives). On the plant family
+                        // a quasi-LPV y^2 / |y| variant or a refined p^2 had the lowest error
+                        // and its refit on a half diverged, while another variant of the same
+                        // effect replicated. Each alternative with its own null must also beat
+                        // the model's structure refit (on the planted output-offset plant,
+                        // diagnose_planted seed 3, a scheduling-noise alternative that
+                        // explained 100 % of its own LPV-ARX null's error replicated)
+                        let larger_eval = larger.as_ref().and_then(|l| {
+                            scored
+                                .iter()
+                                .find(|s| effects::is_larger_past(&s.cand, l))
+                                .and_then(|s| s.eval.as_ref())
+                        });
+                        let alts =
+                            effects::alternatives(&scored, b.1, tried, &base_eval, larger_eval);
+                        for i in alts {
                             let r2 = rep(i);
                             if effects::replicated(&r2) {
                                 swaps[j] = Some(i);
+                                swapped_from[j] = Some((b.1, r));
                                 r = r2;
                                 break;
                             }
@@ -731,6 +732,14 @@ pub fn diagnose_with_progress(
                 let mut ev = evidence(effect, &free, &one, &base, Some(s));
                 if let Some(e) = &s.error {
                     ev.push(format!("the refit failed: {e}"));
+                }
+                if let Some((k, r)) = &swapped_from[j] {
+                    ev.push(format!(
+                        "in place of the variant with the lowest held-out error, {} ({:.1} %), which did not replicate (refit on each training half it explains {} of the null's error): the next variant that passes every full-data test",
+                        scored[*k].cand.detail,
+                        100.0 * scored[*k].explained,
+                        r.iter().map(|x| format!("{:.1} % (p = {:.1e})", 100.0 * x.0, x.1)).collect::<Vec<_>>().join(" and ")
+                    ));
                 }
                 if let (Some(r), Some((_, p))) = (&replication[j], pooled[j]) {
                     ev.push(format!(
