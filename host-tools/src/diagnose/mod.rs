@@ -481,6 +481,14 @@ pub fn diagnose_with_progress(
             opts.threads,
             progress,
         );
+        // the evaluation of the model's structure with a larger past window, which every
+        // finding must also beat (used by the replication's alternatives and the check below)
+        let larger_eval = larger.as_ref().and_then(|l| {
+            scored
+                .iter()
+                .find(|s| effects::is_larger_past(&s.cand, l))
+                .and_then(|s| s.eval.as_ref())
+        });
         let (free, one) = if step_no == 1 {
             (free0.clone(), one0.clone())
         } else {
@@ -582,12 +590,6 @@ pub fn diagnose_with_progress(
                         // the model's structure refit (on the planted output-offset plant,
                         // diagnose_planted seed 3, a scheduling-noise alternative that
                         // explained 100 % of its own LPV-ARX null's error replicated)
-                        let larger_eval = larger.as_ref().and_then(|l| {
-                            scored
-                                .iter()
-                                .find(|s| effects::is_larger_past(&s.cand, l))
-                                .and_then(|s| s.eval.as_ref())
-                        });
                         let alts =
                             effects::alternatives(&scored, b.1, tried, &base_eval, larger_eval);
                         for i in alts {
@@ -644,12 +646,6 @@ pub fn diagnose_with_progress(
         // larger past window (effects::beats_user on effects::versus_larger); an own-output candidate, fitted with the
         // output-error refinement, against that structure refined the same way (refit here,
         // only when such a finding passed everything else)
-        let larger_at = larger.as_ref().and_then(|l| {
-            scored
-                .iter()
-                .position(|s| effects::is_larger_past(&s.cand, l))
-        });
-        let larger_eval = larger_at.and_then(|i| scored[i].eval.as_ref());
         let larger_refined: Option<Eval> = larger
             .as_ref()
             .filter(|_| {
@@ -684,7 +680,6 @@ pub fn diagnose_with_progress(
         // a fix must forget its initial state as the model's structure refit does
         // (memory::forgets_as_null): its score from the state estimated on the first held-out
         // samples must not lean on that state at the end of the record
-        let base_memory = memory::memory(&base.model, val, &base_eval).ok();
         let memories: Vec<Option<memory::Memory>> = best
             .iter()
             .enumerate()
@@ -696,6 +691,12 @@ pub fn diagnose_with_progress(
                 memory::memory(&s.fitted.as_ref()?.model, val, s.eval.as_ref()?).ok()
             })
             .collect();
+        // the null's only when a candidate's is measured (two free runs)
+        let base_memory = memories
+            .iter()
+            .any(Option::is_some)
+            .then(|| memory::memory(&base.model, val, &base_eval).ok())
+            .flatten();
         let memory_ok = |j: usize| match (&memories[j], &base_memory) {
             (Some(c), Some(n)) => memory::forgets_as_null(c, n),
             _ => true,
