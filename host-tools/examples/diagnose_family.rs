@@ -29,8 +29,12 @@ fn main() {
     let runs = family::run_family_with(&effects, &seeds, n, threads, val_len);
     for r in &runs {
         println!(
-            "{:<24} seed {:>5}: named {:<24} ratio {:>8.2}  ({})",
-            r.planted, r.seed, r.named, r.ratio, r.description
+            "{:<24} seed {:>5}: named {:<24} ratio {:>8}  ({})",
+            r.planted,
+            r.seed,
+            r.named,
+            family::Ratio(r.ratio),
+            r.description
         );
     }
     println!();
@@ -51,8 +55,8 @@ fn main() {
     for r in &runs {
         if let Some(o) = &r.oracle {
             println!(
-                "{:<24} seed {:>5}: oracle ratio {:>8.2} explained {:>7.3} p {:.1e} identifiable {:<5} ({})",
-                r.planted, r.seed, o.ratio, o.explained, o.p_value, o.identifiable, o.detail
+                "{:<24} seed {:>5}: oracle ratio {:>8} explained {:>7.3} p {:.1e} identifiable {:<5} ({})",
+                r.planted, r.seed, family::Ratio(o.ratio), o.explained, o.p_value, o.identifiable, o.detail
             );
         }
     }

@@ -483,11 +483,32 @@ pub fn matrix(runs: &[FamilyRun]) -> String {
         let (rec, med, lo, hi, _) = sum[p];
         let _ = writeln!(
             s,
-            "| {p} | {} | {rec:.2} | {med:.2} [{lo:.2}, {hi:.2}] |",
-            cells.join(" | ")
+            "| {p} | {} | {rec:.2} | {} [{}, {}] |",
+            cells.join(" | "),
+            Ratio(med),
+            Ratio(lo),
+            Ratio(hi)
         );
     }
     s
+}
+
+/// An error ratio as printed in the tables: two decimals, or two significant digits in
+/// exponent form from 1e5 on (a diverged model's ratio, e.g. 1.8e103, printed with `{:.2}`
+/// took a hundred digits of a table cell).
+#[derive(Debug, Clone, Copy)]
+pub struct Ratio(pub f64);
+
+impl std::fmt::Display for Ratio {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let text = if self.0.is_finite() && self.0.abs() >= 1e5 {
+            format!("{:.1e}", self.0)
+        } else {
+            format!("{:.2}", self.0)
+        };
+        // honour a width given by the caller ({:>8})
+        f.pad(&text)
+    }
 }
 
 /// Per planted effect (clean plants have no oracle): the raw recall, the plants whose oracle
@@ -521,10 +542,10 @@ pub fn identifiable_table(runs: &[FamilyRun]) -> String {
             "-".to_string()
         } else {
             format!(
-                "{:.2} [{:.2}, {:.2}]",
-                ratios[ratios.len() / 2],
-                ratios[0],
-                ratios[ratios.len() - 1]
+                "{} [{}, {}]",
+                Ratio(ratios[ratios.len() / 2]),
+                Ratio(ratios[0]),
+                Ratio(ratios[ratios.len() - 1])
             )
         };
         let missed: Vec<String> = ident
@@ -532,11 +553,11 @@ pub fn identifiable_table(runs: &[FamilyRun]) -> String {
             .filter(|r| &r.named != e)
             .map(|r| {
                 format!(
-                    "{} ({}) {:.2} / {:.2}",
+                    "{} ({}) {} / {}",
                     r.seed,
                     r.named,
-                    r.oracle.as_ref().map_or(f64::NAN, |o| o.ratio),
-                    r.ratio
+                    Ratio(r.oracle.as_ref().map_or(f64::NAN, |o| o.ratio)),
+                    Ratio(r.ratio)
                 )
             })
             .collect();
