@@ -319,18 +319,70 @@ fn rank_by_own_error(findings: &mut [(Finding, usize)], scored: &[Scored]) {
 
 /// Parsimony among the significant findings ([`effects::prefer_simpler`]): a simpler
 /// significant finding that the first one does not beat head to head is put first, with
-/// the reason in its evidence.
-fn prefer_simpler_first(findings: &mut Vec<(Finding, usize)>, scored: &[Scored], tried: usize) {
+/// the reason in its evidence (first, so the human summary shows it), unless the
+/// encompassing test ([`effects::encompass`], for two findings whose structures combine)
+/// finds that the first one adds to the simpler one and not the reverse (it stays first),
+/// or that both add (the one with the lower own held-out error first). Its numbers go in the
+/// first finding's evidence in every case.
+fn prefer_simpler_first(
+    findings: &mut Vec<(Finding, usize)>,
+    scored: &[Scored],
+    tried: usize,
+    (train, val, base_fit): (&Dataset, &Dataset, &serde_json::Value),
+) {
     let order: Vec<usize> = findings
         .iter()
         .take_while(|f| f.0.significant)
         .map(|f| f.1)
         .collect();
-    if let Some((k, why)) = effects::prefer_simpler(&order, scored, tried) {
+    let Some((k, why)) = effects::prefer_simpler(&order, scored, tried) else {
+        return;
+    };
+    let (s, r) = (&scored[order[k]], &scored[order[0]]);
+    let (sn, rn) = (s.cand.effect.name(), r.cand.effect.name());
+    let Some(e) = effects::encompass(s, r, train, val, base_fit) else {
         let mut f = findings.remove(k);
-        f.0.evidence.push(why);
+        f.0.evidence.insert(0, why);
         findings.insert(0, f);
-    }
+        return;
+    };
+    let numbers = format!(
+        "encompassing test of {sn} and {rn}: the structure with both ({}) explains {:.1} % of {sn}'s held-out error (p = {:.1e}) and {:.1} % of {rn}'s (p = {:.1e}); each comparison needs >= {:.0} % at p < {:.1e} (alpha / {} comparisons)",
+        e.detail,
+        100.0 * e.richer_adds.0,
+        e.richer_adds.1,
+        100.0 * e.simpler_adds.0,
+        e.simpler_adds.1,
+        100.0 * effects::MIN_EXPLAINED,
+        e.level,
+        effects::ENCOMPASSING_TESTS
+    );
+    let better_is_simpler = effects::held_out_mse(s) < effects::held_out_mse(r);
+    let (first, line) = match e.verdict {
+        effects::Encompassed::Richer => (
+            0,
+            format!("{numbers}: {rn} adds to {sn} and {sn} adds nothing to it, so {rn} is the effect ({sn} would otherwise be first by parsimony: {why})"),
+        ),
+        effects::Encompassed::Simpler => (
+            k,
+            format!("{numbers}: {sn} adds to {rn} and {rn} adds nothing to it; {why}"),
+        ),
+        effects::Encompassed::Both => (
+            if better_is_simpler { k } else { 0 },
+            format!(
+                "{numbers}: each adds to the other, both effects are present; {} first (the lower held-out error), {} is the other effect",
+                if better_is_simpler { sn } else { rn },
+                if better_is_simpler { rn } else { sn }
+            ),
+        ),
+        effects::Encompassed::Neither => (
+            k,
+            format!("{numbers}: neither adds to the other, the data do not tell them apart; {why}"),
+        ),
+    };
+    let mut f = findings.remove(first);
+    f.0.evidence.insert(0, line);
+    findings.insert(0, f);
 }
 
 fn threshold() -> Threshold {
@@ -788,7 +840,7 @@ pub fn diagnose_with_progress(
                 .then(b.0.explained.total_cmp(&a.0.explained))
         });
         rank_by_own_error(&mut findings, &scored);
-        prefer_simpler_first(&mut findings, &scored, tried);
+        prefer_simpler_first(&mut findings, &scored, tried, (train, val, &current.fit));
         // the rule that blocked each finding, for the stop line and the summary (human text
         // and JSON say the same)
         for (f, i) in findings.iter_mut() {
