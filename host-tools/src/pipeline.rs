@@ -287,6 +287,9 @@ pub struct MapFit {
     pub refinement: Option<(f64, f64, usize)>,
     /// Input channels constant on the training data (offsets).
     pub constant_inputs: Vec<usize>,
+    /// The map fitted: the one given, with the refined frequencies of its own-output sin/cos
+    /// channels when [`fit_map_frequencies`] refined them.
+    pub signals: SignalMap,
 }
 
 /// Fit a signal map on `ds` the way every front end does (LPV-PBSID_opt with `opts`, kernel
@@ -305,6 +308,20 @@ pub fn fit_map(
     ds: &Dataset,
     opts: &PbsidOptions,
     refine_iters: usize,
+) -> Result<MapFit, Error> {
+    fit_map_frequencies(map, ds, opts, refine_iters, false)
+}
+
+/// [`fit_map`], with `free_frequencies` the frequency omega of every own-output sin/cos
+/// input channel refined with the matrices ([`crate::refine::refine_with_frequencies`],
+/// started from the map's omega); the map with the refined frequencies is
+/// [`MapFit::signals`]. PBSID sees the channel at the map's omega.
+pub fn fit_map_frequencies(
+    map: &SignalMap,
+    ds: &Dataset,
+    opts: &PbsidOptions,
+    refine_iters: usize,
+    free_frequencies: bool,
 ) -> Result<MapFit, Error> {
     let sig = map.evaluate(ds)?;
     let fb = map.feedback(ds)?;
@@ -400,11 +417,15 @@ pub fn fit_map(
         }
     }
     let mut refinement = None;
+    let mut signals = map.clone();
     if refine_iters > 0 && (!fb.is_empty() || !cst.is_empty() || opts.refine) {
         let d_cols: Vec<usize> = (0..r)
             .filter(|j| !now.contains(j) && (cst.contains(j) || opts.feedthrough))
             .collect();
-        let mut rf = crate::refine::refine_d_columns(&model, &sig, &fb, &d_cols, refine_iters);
+        let refine = |start: &LpvSs| {
+            crate::refine::refine_d_columns(start, &sig, &fb, &d_cols, refine_iters)
+        };
+        let mut rf = refine(&model);
         // a second start: the map without its feedback signals (their B columns and A^(i),
         // B^(i) zero), so the loop starts open and stable when PBSID's start with the
         // measured output diverges in free run; the lower training error wins
@@ -425,7 +446,7 @@ pub fn fit_map(
             )
         });
         if let Some(start) = start {
-            let alt = crate::refine::refine_d_columns(&start, &sig, &fb, &d_cols, refine_iters);
+            let alt = refine(&start);
             if alt.mse_after < rf.mse_after.min(rf.mse_before) {
                 rf = crate::refine::Refined {
                     mse_before: rf.mse_before.min(alt.mse_before),
@@ -433,7 +454,42 @@ pub fn fit_map(
                 };
             }
         }
+        // the frequencies of sin/cos channels freed last, from the refined model: started
+        // at PBSID's matrices with omega free, the descent can shrink omega until the
+        // channel is linear in y and stay in that null (the physical pendulum 1011: 86.5 % of
+        // the refined null's held-out error explained with omega = 1 held, 0 % freed)
+        let free = if free_frequencies {
+            crate::refine::frequencies(&fb).0
+        } else {
+            vec![]
+        };
+        if !free.is_empty() && rf.mse_after.is_finite() {
+            let start = if rf.mse_after < rf.mse_before {
+                (&rf.model, &rf.x0)
+            } else {
+                (&model, &rf.x0)
+            };
+            let wf = crate::refine::refine_from(
+                start.0,
+                start.1,
+                &sig,
+                &fb,
+                &d_cols,
+                &free,
+                refine_iters,
+            );
+            if wf.mse_after < rf.mse_after.min(rf.mse_before) {
+                rf = crate::refine::Refined {
+                    mse_before: rf.mse_before,
+                    iterations: rf.iterations + wf.iterations,
+                    ..wf
+                };
+            }
+        }
         if rf.mse_after < rf.mse_before {
+            if !free.is_empty() && !rf.omegas.is_empty() {
+                signals = with_omegas(map, &fb, &free, &rf.omegas);
+            }
             model = rf.model;
             // K was PBSID's, for the matrices before the refinement
             crate::refine::keep_k_if_it_predicts(&mut model, &sig);
@@ -449,7 +505,33 @@ pub fn fit_map(
         fit,
         refinement,
         constant_inputs: cst,
+        signals,
     })
+}
+
+/// `map` with the frequencies `omegas` of its own-output factors at `at` (positions in the
+/// feedback `fb` of `map`, [`crate::refine::frequencies`]).
+fn with_omegas(
+    map: &SignalMap,
+    fb: &crate::model::Feedback,
+    at: &[crate::refine::FreeFrequency],
+    omegas: &[f64],
+) -> SignalMap {
+    let mut out = map.clone();
+    for (&(i, j), &w) in at.iter().zip(omegas) {
+        let (channel, lp) = &fb.inputs[i];
+        let target = &lp.own[j].factor;
+        // the j-th own-output factor of the channel's product
+        if let Some(f) = out.inputs[*channel]
+            .iter_mut()
+            .filter(|f| map.own_output(f).is_some())
+            .nth(j)
+        {
+            debug_assert_eq!(&*f, target);
+            f.omega = Some(w);
+        }
+    }
+    out
 }
 
 /// The start of [`fit_map`]'s second refinement: the map without the signals that read the

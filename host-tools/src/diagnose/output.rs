@@ -179,23 +179,25 @@ pub fn fit(spec: &Spec, train: &Dataset, base_fit: &Value) -> Result<Fitted, Ref
     let mut opts = spec.opts.clone();
     // the null structure of a candidate: refined the same way (refit::Spec::refined)
     opts.refine |= spec.refined;
-    let mf = crate::pipeline::fit_map(&spec.signals, train, &opts, iters).map_err(|e| match e {
-        Error::Data(d) => RefitError::Data(d),
-        Error::Fit { source, .. } => RefitError::Fit(source),
-        other => RefitError::Numerical(other.to_string()),
-    })?;
+    // a sin channel's frequency is refined with the matrices (its start: the candidate's)
+    let mf = crate::pipeline::fit_map_frequencies(&spec.signals, train, &opts, iters, true)
+        .map_err(|e| match e {
+            Error::Data(d) => RefitError::Data(d),
+            Error::Fit { source, .. } => RefitError::Fit(source),
+            other => RefitError::Numerical(other.to_string()),
+        })?;
     let mut rec = match base_fit {
         Value::Object(m) => m.clone(),
         _ => Map::new(),
     };
     let train_rec = json!({"file": train.source, "rows": train.len()});
     let common = crate::record::pbsid_fit_record(&spec.opts, &mf.fit, train_rec);
-    let fed: Vec<String> = spec
+    let fed: Vec<String> = mf
         .signals
         .inputs
         .iter()
-        .chain(spec.signals.scheduling.iter())
-        .filter(|p| p.iter().any(|f| spec.signals.own_output(f).is_some()))
+        .chain(mf.signals.scheduling.iter())
+        .filter(|p| p.iter().any(|f| mf.signals.own_output(f).is_some()))
         .map(|p| describe(p))
         .collect();
     let updates = json!({
@@ -203,7 +205,7 @@ pub fn fit(spec: &Spec, train: &Dataset, base_fit: &Value) -> Result<Fitted, Ref
         "output_equation": "constant",
         "output_feedback": {
             "signals": fed,
-            "identification": "PBSID with the measured output in these signals, then output-error refinement (Levenberg-Marquardt) of the free run through the feedback",
+            "identification": "PBSID with the measured output in these signals, then output-error refinement (Levenberg-Marquardt) of the free run through the feedback, a sin channel's frequency with it",
             "refinement_mse": mf.refinement.map(|(a, b, _)| json!([a, b])),
             "refinement_iterations": mf.refinement.map(|(_, _, i)| i),
         },
@@ -224,7 +226,7 @@ pub fn fit(spec: &Spec, train: &Dataset, base_fit: &Value) -> Result<Fitted, Ref
     }
     let model = ModelFile {
         kind: ModelKind::Ss(mf.model),
-        signals: spec.signals.clone(),
+        signals: mf.signals.clone(),
         fit: Value::Object(rec),
     };
     // the loops must be well posed (the refinement keeps them so)
