@@ -265,7 +265,64 @@ pub fn evidence(best: Option<&Scored>) -> Vec<String> {
                     ));
                 }
             }
+            ev.extend(refined_frequencies(
+                &s.cand.spec.signals.inputs,
+                &f.model.signals.inputs,
+            ));
         }
     }
     ev
+}
+
+/// One line per sin/cos input factor whose frequency the fit moved from where the variant
+/// started it ([`crate::pipeline::fit_map_frequencies`]): the variant's name keeps the
+/// starting omega, the model file holds the fitted one.
+fn refined_frequencies(started: &[Vec<Factor>], fitted: &[Vec<Factor>]) -> Vec<String> {
+    let mut lines = Vec::new();
+    for (a, b) in started.iter().zip(fitted) {
+        for (fa, fb) in a.iter().zip(b) {
+            if !matches!(fa.func, Some(FactorFn::Sin | FactorFn::Cos)) {
+                continue;
+            }
+            let (w0, w1) = (fa.omega.unwrap_or(1.0), fb.omega.unwrap_or(1.0));
+            if w0 != w1 {
+                let func = if fa.func == Some(FactorFn::Sin) {
+                    "sin"
+                } else {
+                    "cos"
+                };
+                lines.push(format!(
+                    "the frequency of {func}(omega {}) refined with the matrices: omega {w0:.4} -> {w1:.4}",
+                    fa.col
+                ));
+            }
+        }
+    }
+    lines
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn sin_of(col: &str, omega: f64) -> Vec<Factor> {
+        vec![Factor {
+            omega: Some(omega),
+            ..own(col, 1.0, Some(FactorFn::Sin))
+        }]
+    }
+
+    #[test]
+    fn a_moved_frequency_is_named_with_both_values() {
+        let started = vec![vec![Factor::col("u1")], sin_of("y1", 0.3778)];
+        let fitted = vec![vec![Factor::col("u1")], sin_of("y1", 0.4012)];
+        let lines = refined_frequencies(&started, &fitted);
+        assert_eq!(lines.len(), 1, "{lines:?}");
+        assert_eq!(
+            lines[0],
+            "the frequency of sin(omega y1) refined with the matrices: omega 0.3778 -> 0.4012"
+        );
+        // a frequency the fit kept, and a channel without one, say nothing
+        assert!(refined_frequencies(&started, &started).is_empty());
+    }
 }

@@ -340,11 +340,17 @@ pub fn run_one_with(effect: &str, seed: u64, n: usize, val_len: Option<usize>) -
                 f.significant,
                 f.blocked_by
             );
-            for e in f
-                .evidence
+            // the evidence lines of the rules that block or reorder findings
+            for e in f.evidence.iter().filter(|e| {
+                [
+                    "larger past window",
+                    "encompassing test",
+                    "preferred to",
+                    "frequency of",
+                ]
                 .iter()
-                .filter(|e| e.contains("larger past window"))
-            {
+                .any(|k| e.contains(k))
+            }) {
                 let _ = writeln!(v, "      {e}");
             }
         }
