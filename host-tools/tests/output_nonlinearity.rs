@@ -253,6 +253,11 @@ fn one(plant: Plant, seed: u64) -> (bool, bool, f64, bool, String) {
                 f.effect, f.detail, f.explained, f.p_value, f.replication, f.significant
             );
         }
+        // the first line of the first finding's evidence: the ranking rule that put it there
+        // (parsimony, the encompassing test), when one did
+        if let Some(e) = o.report.findings.first().and_then(|f| f.evidence.first()) {
+            println!("    first evidence: {e}");
+        }
         for v in &o.report.steps[0].variants_scored {
             println!(
                 "    {} {} {:.3} p {:.1e} {:?}",

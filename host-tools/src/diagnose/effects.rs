@@ -585,8 +585,7 @@ pub fn candidates(ctx: &Context<'_>) -> (Vec<Candidate>, Vec<(Effect, String)>, 
             .or_else(|| {
                 // an own-output candidate is fitted with the output-error refinement: its null
                 // is the model's structure fitted the same way (diagnose/output.rs)
-                (effect == Effect::OutputNonlinearity)
-                    .then(|| super::output::null_of(ctx.spec, &spec))
+                (effect == Effect::OutputNonlinearity).then(|| refined_null(ctx.spec))
             })
             // a structure refined from the refined fit of the model's own structure
             // (refit::fit_nested) is judged against that refined structure

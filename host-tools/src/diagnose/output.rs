@@ -6,13 +6,7 @@
 //!   |y| y, sin y, sqrt|y|, and sin(y / spread) when the output's spread is far from 1
 //!   (delay 0: the output equation does not use it);
 //! - **quasi-LPV**: a scheduling function y^2 or |y| (only with an output equation that does
-//!   not depend on scheduling);
-//! - **compound**: each Lur'e channel at order n + 1 (the order check's grown order,
-//!   [`grown_order`]), judged against the order n + 1 structure refined the same way
-//!   ([`null_of`]): a second-order plant identified at order 1 (the physical pendulum 1010
-//!   and 1013 of docs/bench-diagnose.md) has no state for sin(angle) to act through, and the
-//!   finding must be about the channel, not the order. One variant per Lur'e shape, counted
-//!   in the variants tried like every other.
+//!   not depend on scheduling).
 //!
 //! Each variant is fitted by [`crate::pipeline::fit_map`] (the pipeline's PBSID with the
 //! measured output in the new signal, as with feedback, then the output-error refinement
@@ -27,7 +21,6 @@ use super::refit::{Fitted, Noise, RefitError, Spec};
 use crate::data::Dataset;
 use crate::error::Error;
 use crate::model::{describe, Factor, FactorFn, ModelFile, ModelKind};
-use crate::pbsid::PbsidOptions;
 
 /// Most Levenberg-Marquardt iterations of the refinement through the feedback: a ceiling,
 /// not the usual stop. The refinement ends when no step improves the fit or the cost
@@ -120,10 +113,6 @@ pub fn candidates(ctx: &Context<'_>) -> (Vec<(String, Spec)>, Option<String>) {
     }
     let present = |p: &[Factor]| map.inputs.iter().chain(&map.scheduling).any(|q| q == p);
     let mut out = Vec::new();
-    // the compound variants: the Lur'e channel at the order the order check grows to
-    let n = ctx.base.order;
-    let grown = grown_order(&spec.opts, n, map.outputs.len());
-    let mut compound = Vec::new();
     for c in &outs {
         let Some(col) = ctx.train.column(c) else {
             continue;
@@ -139,19 +128,9 @@ pub fn candidates(ctx: &Context<'_>) -> (Vec<(String, Spec)>, Option<String>) {
             }
             let mut sp = spec.clone();
             sp.signals.inputs.push(prod);
-            let mut sc = sp.clone();
-            sc.opts = grown.clone();
             out.push((
                 format!("Lur'e feedback: {name} of the model's own output as an input channel"),
                 sp,
-            ));
-            compound.push((
-                format!(
-                    "Lur'e feedback: {name} of the model's own output as an input channel, at order {} (was {n}; judged against order {} refined)",
-                    n + 1,
-                    n + 1
-                ),
-                sc,
             ));
         }
         if spec.scheduled_output {
@@ -169,39 +148,10 @@ pub fn candidates(ctx: &Context<'_>) -> (Vec<(String, Spec)>, Option<String>) {
             ));
         }
     }
-    out.extend(compound);
     let why = out
         .is_empty()
         .then(|| "every output-feedback shape is already in the model".to_string());
     (out, why)
-}
-
-/// The PBSID settings of the order check's variant "order n + 1" (the `order-too-low`
-/// variants of [`super::effects::candidates`]): order n + 1 at the model's past window, the
-/// past and future windows grown where f * l < n + 2 (enough singular values).
-pub fn grown_order(opts: &PbsidOptions, n: usize, l: usize) -> PbsidOptions {
-    let mut o = opts.clone();
-    let order = n + 1;
-    o.order = crate::pbsid::Order::Fixed(order);
-    let need = (order + 1).div_ceil(l.max(1));
-    if o.future.unwrap_or(o.past) < need {
-        o.past = o.past.max(need);
-        o.future = Some(need.min(o.past));
-    }
-    o
-}
-
-/// The null of an own-output variant `cand` of the model's structure `user`: the model's
-/// structure with the variant's PBSID settings, fitted the same way (the output-error
-/// refinement, [`super::effects::refined_null`]). For a variant at the model's own settings
-/// this is the model's structure refined; for a compound variant (the Lur'e channel at order
-/// n + 1) it is the order n + 1 structure refined, so that what the variant explains is the
-/// channel's, not the order's.
-pub fn null_of(user: &Spec, cand: &Spec) -> Spec {
-    Spec {
-        opts: cand.opts.clone(),
-        ..super::effects::refined_null(user)
-    }
 }
 
 /// Fit a structure that reads the model's own output (the hook of
