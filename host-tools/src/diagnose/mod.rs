@@ -380,7 +380,8 @@ fn like_with_like_first(
 /// Parsimony among the significant findings ([`effects::prefer_simpler`]): a simpler
 /// significant finding that the first one does not beat head to head is put first, with
 /// the reason in its evidence (first, so the human summary shows it), unless the
-/// encompassing test ([`effects::encompass`], for two findings whose structures combine)
+/// encompassing test ([`effects::encompass`], for two findings whose structures combine: the
+/// two scheduling effects, and order-too-low with output-nonlinearity)
 /// finds that the first one adds to the simpler one and not the reverse (it stays first),
 /// or that both add (the one with the lower own held-out error first). Its numbers go in the
 /// first finding's evidence in every case.
