@@ -325,17 +325,20 @@ fn fitted_refined(spec: &Spec) -> bool {
 
 /// Own held-out errors compared like with like (issue 14). A variant fitted with the
 /// output-error refinement gains from the refinement as well as from its effect, so ranked
-/// first on its own error it can hide a finding that was fitted by PBSID alone: on the
-/// family's output-offset plant 31002 a Lur'e sqrt|y1| (36.8 % of the refined null) came
-/// before the offset (88.4 % of the PBSID null). When the first significant free-run finding
-/// is refined, each PBSID-fitted free-run finding after it is refit with its structure
-/// refined the same way ([`effects::refined_null`]); the one whose refined structure has the
-/// lowest held-out error, if not above the first's, goes first, with the numbers in its
-/// evidence. What is applied is still the finding as scored. Applied after the parsimony
-/// rule ([`prefer_simpler_first`]), whose head-to-head test compares the errors as fitted.
+/// first on its own error, or kept first by the parsimony rule's head-to-head test, it can
+/// hide a finding that was fitted by PBSID alone: on the family's output-offset plant 31002
+/// a Lur'e sqrt|y1| (36.8 % of the refined null, one coefficient fewer) came before the
+/// offset (88.4 % of the PBSID null). When the first significant free-run finding R is
+/// refined, each PBSID-fitted free-run finding U after it is refit with its structure
+/// refined the same way ([`effects::refined_null`]); U goes first when that refit's held-out
+/// error is not above R's and, if R has fewer free coefficients, it also beats R head to
+/// head (the parsimony rule's test, [`effects::versus`] at ALPHA / `tried`, now like with
+/// like). The U with the lowest such error is taken, with the numbers in its evidence. What is
+/// applied is still the finding as scored. Applied after [`prefer_simpler_first`].
 fn like_with_like_first(
     findings: &mut [(Finding, usize)],
     scored: &[Scored],
+    tried: usize,
     (train, val, base_fit): (&Dataset, &Dataset, &serde_json::Value),
 ) {
     let Some(top) = findings.first().map(|f| &scored[f.1]) else {
@@ -345,32 +348,57 @@ fn like_with_like_first(
     if !free(top) || !fitted_refined(&top.cand.spec) {
         return;
     }
-    let top_mse = effects::held_out_mse(top);
-    let mut best: Option<(usize, f64)> = None;
+    let Some(top_eval) = top.eval.as_ref() else {
+        return;
+    };
+    let count = |s: &Scored| {
+        s.fitted
+            .as_ref()
+            .map(|f| effects::parameter_count(&f.model, Mode::FreeRun))
+    };
+    let top_loss = top_eval.loss(Mode::FreeRun);
+    let top_mse = top_eval.mse(Mode::FreeRun);
+    let level = ALPHA / tried.max(1) as f64;
+    // (position, refined error, head-to-head (explained, p) when R is simpler)
+    let mut best: Option<(usize, f64, Option<(f64, f64)>)> = None;
     for (j, (_, i)) in findings.iter().enumerate().skip(1) {
         let s = &scored[*i];
         if !free(s) || fitted_refined(&s.cand.spec) || s.cand.spec.arx.is_some() {
             continue;
         }
-        let Some(mse) = fit_spec(&effects::refined_null(&s.cand.spec), train, base_fit)
+        let Some(e) = fit_spec(&effects::refined_null(&s.cand.spec), train, base_fit)
             .ok()
             .and_then(|f| Eval::new(&f.model, val).ok())
-            .map(|e| e.mse(Mode::FreeRun))
-            .filter(|m| m.is_finite())
         else {
             continue;
         };
-        if mse <= top_mse && best.is_none_or(|(_, b)| mse < b) {
-            best = Some((j, mse));
+        let mse = e.mse(Mode::FreeRun);
+        if !mse.is_finite() || mse > top_mse || best.is_some_and(|(_, b, _)| mse >= b) {
+            continue;
         }
+        let h2h = match (count(top), count(s)) {
+            (Some(kr), Some(ku)) if kr < ku => {
+                let v = effects::versus(&top_loss, &e.loss(Mode::FreeRun));
+                if v.1 >= level {
+                    continue;
+                }
+                Some(v)
+            }
+            _ => None,
+        };
+        best = Some((j, mse, h2h));
     }
-    let Some((j, mse)) = best else {
+    let Some((j, mse, h2h)) = best else {
         return;
     };
     let line = format!(
-        "ranked before {} ({}): fitted the same way, with the output-error refinement, its structure's held-out error is {mse:.3e} against {top_mse:.3e}; that finding's lower error ({:.3e} here) came from the refinement, not from its effect",
+        "ranked before {} ({}): fitted the same way, with the output-error refinement, its structure's held-out error is {mse:.3e} against {top_mse:.3e}{}; the lower error of that finding than this one's as fitted ({:.3e}) came from the refinement, not from its effect",
         top.cand.effect.name(),
         top.cand.detail,
+        h2h.map_or(String::new(), |(x, p)| format!(
+            " (head to head, as that structure has fewer free coefficients: explains {:.1} % of its error, p = {p:.1e} < {level:.1e})",
+            100.0 * x
+        )),
         effects::held_out_mse(&scored[findings[j].1])
     );
     findings[..=j].rotate_right(1);
@@ -903,7 +931,12 @@ pub fn diagnose_with_progress(
         rank_by_own_error(&mut findings, &scored);
         prefer_simpler_first(&mut findings, &scored, tried, (train, val, &current.fit));
         let k = findings.iter().take_while(|f| f.0.significant).count();
-        like_with_like_first(&mut findings[..k], &scored, (train, val, &current.fit));
+        like_with_like_first(
+            &mut findings[..k],
+            &scored,
+            tried,
+            (train, val, &current.fit),
+        );
         // the rule that blocked each finding, for the stop line and the summary (human text
         // and JSON say the same)
         for (f, i) in findings.iter_mut() {
