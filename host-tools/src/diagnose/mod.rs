@@ -359,8 +359,10 @@ fn like_with_like_first(
     let top_loss = top_eval.loss(Mode::FreeRun);
     let top_mse = top_eval.mse(Mode::FreeRun);
     let level = ALPHA / tried.max(1) as f64;
-    // (position, refined error, head-to-head (explained, p) when R is simpler)
-    let mut best: Option<(usize, f64, Option<(f64, f64)>)> = None;
+    // (explained, p) of a head-to-head test
+    type HeadToHead = Option<(f64, f64)>;
+    // (position, refined error, head to head when R is simpler)
+    let mut best: Option<(usize, f64, HeadToHead)> = None;
     for (j, (_, i)) in findings.iter().enumerate().skip(1) {
         let s = &scored[*i];
         if !free(s) || fitted_refined(&s.cand.spec) || s.cand.spec.arx.is_some() {
