@@ -384,7 +384,13 @@ fn score_inner(
         let why = "the refit model diverges on the validation data".to_string();
         return Scored::failed(cand, Some(fitted), Some(eval), why);
     }
-    let (basis, loss0, loss1) = judged(&eval, null, mode);
+    // the symmetric memory rule corrects refits of the model's own structure; a variant
+    // with its own null structure is compared with it as scored (super::memory::judged)
+    let (basis, loss0, loss1) = if cand.null.is_some() {
+        (Basis::EstimatedStart, null.loss(mode), eval.loss(mode))
+    } else {
+        judged(&eval, null, mode)
+    };
     let c = compare(&loss0, &loss1);
     Scored {
         cand,

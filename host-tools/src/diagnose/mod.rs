@@ -750,7 +750,13 @@ pub fn diagnose_with_progress(
                 } else {
                     larger_eval
                 }?;
-                let (basis, l0, l1) = memory::judged(e, l, mode);
+                // the larger structure refined, for an own-output variant, is not a refit of
+                // the model's own structure: compared as scored (memory::judged)
+                let (basis, l0, l1) = if b.0 == Effect::OutputNonlinearity {
+                    (memory::Basis::EstimatedStart, l.loss(mode), e.loss(mode))
+                } else {
+                    memory::judged(e, l, mode)
+                };
                 effects::versus_larger(&l0, &l1).map(|v| (v, basis))
             })
             .collect();
