@@ -762,6 +762,34 @@ pub fn diagnose_with_progress(
             .collect();
         let larger_ok =
             |j: usize| vs_larger[j].is_none_or(|v| effects::beats_user(v.0, tried, short));
+        // a scheduling finding judged against the model's structure refit must also beat that
+        // structure refined by output error (effects::needs_refined_null): fitted only when
+        // such a finding passed every rule before
+        let refined_eval: Option<Eval> = best
+            .iter()
+            .enumerate()
+            .any(|(j, b)| passed[j] && larger_ok(j) && effects::needs_refined_null(&scored[b.1]))
+            .then(|| {
+                fit_spec(&effects::refined_null(&spec), train, &current.fit)
+                    .ok()
+                    .and_then(|f| Eval::new(&f.model, val).ok())
+            })
+            .flatten();
+        let vs_refined: Vec<Option<(f64, f64)>> = best
+            .iter()
+            .enumerate()
+            .map(|(j, b)| {
+                let s = &scored[b.1];
+                if !(passed[j] && larger_ok(j) && effects::needs_refined_null(s)) {
+                    return None;
+                }
+                let mode = b.0.metric();
+                let r = refined_eval.as_ref()?;
+                effects::versus_larger(&r.loss(mode), &s.eval.as_ref()?.loss(mode))
+            })
+            .collect();
+        let refined_ok =
+            |j: usize| vs_refined[j].is_none_or(|v| effects::beats_user(v, tried, short));
         // a fix must forget its initial state as the model's structure refit does
         // (memory::forgets_as_null): its score from the state estimated on the first held-out
         // samples must not lean on that state at the end of the record
@@ -769,7 +797,7 @@ pub fn diagnose_with_progress(
             .iter()
             .enumerate()
             .map(|(j, b)| {
-                if !(passed[j] && larger_ok(j)) || b.0.metric() != Mode::FreeRun {
+                if !(passed[j] && larger_ok(j) && refined_ok(j)) || b.0.metric() != Mode::FreeRun {
                     return None;
                 }
                 scored[b.1].eval.as_ref().map(memory::Memory::of)
@@ -782,7 +810,7 @@ pub fn diagnose_with_progress(
                 .is_none_or(|c| memory::forgets_as_null(c, &base_memory))
         };
         let sig: Vec<bool> = (0..best.len())
-            .map(|j| passed[j] && larger_ok(j) && memory_ok(j))
+            .map(|j| passed[j] && larger_ok(j) && refined_ok(j) && memory_ok(j))
             .collect();
         let larger_detail = larger.as_ref().map_or(String::new(), |l| l.detail.clone());
         // a noise model cannot explain the part of the residual an input-driven effect does;
@@ -839,10 +867,15 @@ pub fn diagnose_with_progress(
                         r.iter().map(|x| format!("{:.1} %", 100.0 * x.0)).collect::<Vec<_>>().join(" and "),
                         r.iter().map(|x| format!("{:.1e}", x.1)).collect::<Vec<_>>().join(", "),
                         if zero {
-                            format!(
-                                "; compared with the null refit on the same half {}",
-                                rep_bases[j].iter().flatten().map(|b| b.describe()).collect::<Vec<_>>().join(" and ")
-                            )
+                            let b: Vec<memory::Basis> = rep_bases[j].iter().flatten().copied().collect();
+                            if b.windows(2).all(|w| w[0] == w[1]) {
+                                format!("; each compared with the null refit on the same half {}", b[0].describe())
+                            } else {
+                                format!(
+                                    "; compared with the null refit on the same half {}",
+                                    b.iter().map(|x| x.describe()).collect::<Vec<_>>().join(" and ")
+                                )
+                            }
                         } else {
                             String::new()
                         }
@@ -853,6 +886,13 @@ pub fn diagnose_with_progress(
                         let null = s.cand.null.is_none().then_some(&base_eval);
                         ev.push(symmetric_memory_evidence(e, null));
                     }
+                }
+                if let Some(v) = vs_refined[j] {
+                    ev.push(format!(
+                        "against the model's own structure refined by output error: explains {:.1} % of its held-out error (p = {:.2e})",
+                        100.0 * v.0,
+                        v.1
+                    ));
                 }
                 if let Some((v, basis)) = vs_larger[j] {
                     ev.push(format!(
@@ -928,6 +968,12 @@ pub fn diagnose_with_progress(
                             ALPHA / tried.max(1) as f64
                         )
                     }
+                )
+            } else if let Some(v) = j.filter(|j| !refined_ok(*j)).and_then(|j| vs_refined[j]) {
+                format!(
+                    "the model's own structure refined by output error removes that error as well: against it this variant explains {:.1} % of the held-out error (p = {:.2e}; a finding must improve on it as on the structure's refit); what it removes is the bias of the subspace estimate of the model's own structure, not a missing scheduling dependence",
+                    100.0 * v.0,
+                    v.1
                 )
             } else if let Some(m) = j.filter(|j| !memory_ok(*j)).and_then(|j| memories[j]) {
                 format!(
