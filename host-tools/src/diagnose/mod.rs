@@ -701,8 +701,8 @@ pub fn diagnose_with_progress(
             }
         };
         // a variant with its own null replaces the model's structure when applied: it must
-        // also beat the null refit of that structure (effects::beats_user), compared as its
-        // own null (memory::judged)
+        // also beat the null refit of that structure (effects::beats_user), under the
+        // symmetric memory rule (memory::judged)
         let vs_user: Vec<Option<(f64, f64)>> = best
             .iter()
             .map(|b| {
