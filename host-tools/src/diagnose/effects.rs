@@ -338,7 +338,23 @@ pub fn score(
     null: Option<&Eval>,
 ) -> Scored {
     let t0 = std::time::Instant::now();
-    let mut s = score_inner(cand, train, val, base_fit, null);
+    let mut s = score_inner(cand, train, val, base_fit, null, false);
+    s.seconds = t0.elapsed().as_secs_f64();
+    s
+}
+
+/// [`score`] against the candidate's own null structure ([`Candidate::null`]) already fitted
+/// and evaluated, `own_null`: compared as scored (the symmetric memory rule is for refits of
+/// the model's own structure, [`super::memory::judged`]).
+pub fn score_own(
+    cand: Candidate,
+    train: &Dataset,
+    val: &Dataset,
+    base_fit: &serde_json::Value,
+    own_null: &Eval,
+) -> Scored {
+    let t0 = std::time::Instant::now();
+    let mut s = score_inner(cand, train, val, base_fit, Some(own_null), true);
     s.seconds = t0.elapsed().as_secs_f64();
     s
 }
@@ -349,6 +365,7 @@ fn score_inner(
     val: &Dataset,
     base_fit: &serde_json::Value,
     null: Option<&Eval>,
+    own: bool,
 ) -> Scored {
     let mode = cand.effect.metric();
     let fitted = match fit_spec(&cand.spec, train, base_fit) {
@@ -361,6 +378,7 @@ fn score_inner(
     };
     let own_null;
     let null = match (null, &cand.null) {
+        (Some(n), _) if own => n,
         (Some(n), None) => n,
         (_, Some(ns)) => match fit_spec(ns, train, base_fit)
             .map_err(|e| e.to_string())
@@ -386,7 +404,7 @@ fn score_inner(
     }
     // the symmetric memory rule corrects refits of the model's own structure; a variant
     // with its own null structure is compared with it as scored (super::memory::judged)
-    let (basis, loss0, loss1) = if cand.null.is_some() {
+    let (basis, loss0, loss1) = if own || cand.null.is_some() {
         (Basis::EstimatedStart, null.loss(mode), eval.loss(mode))
     } else {
         judged(&eval, null, mode)

@@ -277,17 +277,16 @@ fn score_all(
                 if i >= jobs.len() {
                     break;
                 }
-                let mut c = jobs[i].1.clone();
+                let c = jobs[i].1.clone();
                 let own = c.null.as_ref().and_then(|ns| {
                     let key = format!("{ns:?}");
                     nulls.iter().find(|(k, _)| *k == key).map(|(_, l)| l)
                 });
-                // the null's evaluation is given: score against it without refitting it
-                let null = if own.is_some() { c.null.take() } else { None };
-                let mut sc = effects::score(c, train, val, fit, Some(own.unwrap_or(base)));
-                if null.is_some() {
-                    sc.cand.null = null;
-                }
+                // the own null's evaluation is given: score against it without refitting it
+                let sc = match own {
+                    Some(o) => effects::score_own(c, train, val, fit, o),
+                    None => effects::score(c, train, val, fit, Some(base)),
+                };
                 let done = {
                     let mut slots = out.lock().expect("no panics while holding the lock");
                     slots[jobs[i].0] = Some(sc);
