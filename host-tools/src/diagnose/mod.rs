@@ -122,6 +122,8 @@ pub struct VariantScore {
     pub detail: String,
     /// Fraction of the null refit's held-out error it removes (raw, before any adjustment).
     pub explained: f64,
+    /// How it was compared with its null ([`memory::judged`]).
+    pub basis: memory::Basis,
     /// One-sided p-value.
     pub p_value: f64,
     /// Why it could not be scored.
@@ -239,8 +241,6 @@ fn score_all(
     threads: usize,
     progress: Option<Progress<'_>>,
 ) -> Vec<Scored> {
-    let loss_free = base.loss(Mode::FreeRun);
-    let loss_pred = base.loss(Mode::Predictor);
     let threads = if threads == 0 {
         std::thread::available_parallelism().map_or(1, |n| n.get())
     } else {
@@ -250,9 +250,8 @@ fn score_all(
     // the null structures some candidates are compared with instead of the model's own
     // (the BC-IV fit without its correction, the refined fit of an own-output candidate's
     // structure): refit once per distinct structure, not once per candidate
-    // (structure, its free-run and one-step held-out losses)
-    type NullLoss = (String, (Vec<f64>, Vec<f64>));
-    let mut nulls: Vec<NullLoss> = Vec::new();
+    // (structure, its held-out evaluation)
+    let mut nulls: Vec<(String, Eval)> = Vec::new();
     for c in &cands {
         let Some(ns) = &c.null else { continue };
         let key = format!("{ns:?}");
@@ -264,7 +263,7 @@ fn score_all(
             .ok()
             .and_then(|f| Eval::new(&f.model, val).ok())
         {
-            nulls.push((key, (e.loss(Mode::FreeRun), e.loss(Mode::Predictor))));
+            nulls.push((key, e));
         }
     }
     let jobs: Vec<(usize, effects::Candidate)> = cands.into_iter().enumerate().collect();
@@ -278,22 +277,16 @@ fn score_all(
                 if i >= jobs.len() {
                     break;
                 }
-                let mut c = jobs[i].1.clone();
+                let c = jobs[i].1.clone();
                 let own = c.null.as_ref().and_then(|ns| {
                     let key = format!("{ns:?}");
                     nulls.iter().find(|(k, _)| *k == key).map(|(_, l)| l)
                 });
-                let (lf, lp) = own.map_or((&loss_free, &loss_pred), |l| (&l.0, &l.1));
-                let loss0 = match c.effect.metric() {
-                    Mode::FreeRun => lf,
-                    Mode::Predictor => lp,
+                // the own null's evaluation is given: score against it without refitting it
+                let sc = match own {
+                    Some(o) => effects::score_own(c, train, val, fit, o),
+                    None => effects::score(c, train, val, fit, Some(base)),
                 };
-                // the null's loss is given: score against it without refitting it
-                let null = if own.is_some() { c.null.take() } else { None };
-                let mut sc = effects::score(c, train, val, fit, loss0);
-                if null.is_some() {
-                    sc.cand.null = null;
-                }
                 let done = {
                     let mut slots = out.lock().expect("no panics while holding the lock");
                     slots[jobs[i].0] = Some(sc);
@@ -407,6 +400,32 @@ fn like_with_like_first(
     findings[0].0.evidence.insert(0, line);
 }
 
+/// The evidence line of a variant compared with its null under the symmetric memory rule
+/// ([`memory::basis`]): with `null` the null refit of the model's structure (a variant with
+/// its own null structure: None, only the rule is named), both runs' dependence on their
+/// estimated starts and what the variant explains from the estimated states, as it would
+/// have been judged without the rule.
+fn symmetric_memory_evidence(cand: &Eval, null: Option<&Eval>) -> String {
+    let rule = format!(
+        "compared with its null {}",
+        memory::Basis::ZeroStartTail.describe()
+    );
+    let Some(null) = null else {
+        return rule;
+    };
+    let (c, n) = (memory::Memory::of(cand), memory::Memory::of(null));
+    let v = effects::versus(&null.loss(Mode::FreeRun), &cand.loss(Mode::FreeRun));
+    format!(
+        "{rule}: at the end of the held-out record the null refit's estimated start moves its output by {:.3e} (mean square, normalised) against its own error of {:.3e} there (it leans on that start as a free offset or drift), this variant's by {:.3e} against {:.3e} (it forgets its start); from the estimated initial states over all scored rows it explains {:.1} % (p = {:.1e})",
+        n.influence,
+        n.error,
+        c.influence,
+        c.error,
+        100.0 * v.0,
+        v.1
+    )
+}
+
 /// Parsimony among the significant findings ([`effects::prefer_simpler`]): a simpler
 /// significant finding that the first one does not beat head to head is put first, with
 /// the reason in its evidence (first, so the human summary shows it), unless the
@@ -480,7 +499,7 @@ fn threshold() -> Threshold {
     Threshold {
         alpha: ALPHA,
         min_explained: effects::MIN_EXPLAINED,
-        test: "explained >= min_explained and a one-sided t test of the per-batch log ratio of held-out squared errors (free run from an initial state estimated on the first held-out samples, which are not scored; up to 20 batches of >= 25 samples) at level alpha / (variants tried), replicated on each half of the training data (explained > 0, p < 0.05 each); a short held-out record (fewer than 20 batches) is cross-validated in 5 contiguous blocks (the held-out record and 4 blocks of the training data; each training block is scored by a refit on the other blocks and the held-out record, against the null structure refit on the same rows): the batches of all 5 folds are pooled in the t test, and the replication is that all folds but one explain part of the null's error there; every effect but order-too-low must also beat the model's own structure with a past window 2 longer by the same evidence, and a free-run effect must forget its start as the null refit does (its free runs from the estimated and from the zero state agree at the end of the held-out record to within its own error there, unless the null's do not either)",
+        test: "explained >= min_explained and a one-sided t test of the per-batch log ratio of held-out squared errors (free run from an initial state estimated on the first held-out samples, which are not scored; up to 20 batches of >= 25 samples) at level alpha / (variants tried), replicated on each half of the training data (explained > 0, p < 0.05 each); a short held-out record (fewer than 20 batches) is cross-validated in 5 contiguous blocks (the held-out record and 4 blocks of the training data; each training block is scored by a refit on the other blocks and the held-out record, against the null structure refit on the same rows): the batches of all 5 folds are pooled in the t test, and the replication is that all folds but one explain part of the null's error there; every effect but order-too-low must also beat the model's own structure with a past window 2 longer by the same evidence, a scheduling effect judged against the subspace refit also that structure refined by output error, and a free-run effect must forget its start as the null refit does (its free runs from the estimated and from the zero state agree at the end of the held-out record to within its own error there, unless the null's do not either); when a free-run variant forgets its start and the model it is compared with (the null refit, on the full data or a training half, or the larger past window) leans on its own, both are compared from the zero state over the second half of the scored rows",
     }
 }
 
@@ -703,6 +722,8 @@ pub fn diagnose_with_progress(
         // (its index, (explained, p) per half)
         type Failed = (usize, Vec<(f64, f64)>);
         let mut swapped_from: Vec<Option<Failed>> = vec![None; best.len()];
+        // how each half's refit was compared with the null refit on that half
+        let mut rep_bases: Vec<Option<Vec<memory::Basis>>> = vec![None; best.len()];
         if !short && full_sig.iter().any(|v| *v) {
             let halves = effects::halves(train);
             let nulls: Vec<Option<Eval>> = halves
@@ -722,7 +743,7 @@ pub fn diagnose_with_progress(
                     let rep = |i: usize| {
                         effects::replicate(&scored[i].cand, &halves, &nulls, val, &current.fit)
                     };
-                    let mut r = rep(b.1);
+                    let (mut r, mut bases) = rep(b.1);
                     if !effects::replicated(&r) {
                         // the effect's best variant did not hold up on the halves: its next
                         // variants that pass every full-data test of a finding, lowest
@@ -736,16 +757,18 @@ pub fn diagnose_with_progress(
                         let alts =
                             effects::alternatives(&scored, b.1, tried, &base_eval, larger_eval);
                         for i in alts {
-                            let r2 = rep(i);
+                            let (r2, b2) = rep(i);
                             if effects::replicated(&r2) {
                                 swaps[j] = Some(i);
                                 swapped_from[j] = Some((b.1, r));
                                 r = r2;
+                                bases = b2;
                                 break;
                             }
                         }
                     }
                     replication[j] = Some(r);
+                    rep_bases[j] = Some(bases);
                 }
             } else {
                 notes.push("the null structure cannot be refit on half of the training data: findings are not replicated on independent halves".into());
@@ -768,15 +791,16 @@ pub fn diagnose_with_progress(
             }
         };
         // a variant with its own null replaces the model's structure when applied: it must
-        // also beat the null refit of that structure (effects::beats_user)
+        // also beat the null refit of that structure (effects::beats_user), under the
+        // symmetric memory rule (memory::judged)
         let vs_user: Vec<Option<(f64, f64)>> = best
             .iter()
             .map(|b| {
                 let s = &scored[b.1];
                 s.cand.null.as_ref()?;
-                let mode = s.cand.effect.metric();
-                let e = s.eval.as_ref()?;
-                Some(effects::versus(&base_eval.loss(mode), &e.loss(mode)))
+                let (_, l0, l1) =
+                    memory::judged(s.eval.as_ref()?, &base_eval, s.cand.effect.metric());
+                Some(effects::versus(&l0, &l1))
             })
             .collect();
         let user_ok = |j: usize| vs_user[j].is_none_or(|v| effects::beats_user(v, tried, short));
@@ -801,7 +825,8 @@ pub fn diagnose_with_progress(
                     .ok()
                     .and_then(|f| Eval::new(&f.model, val).ok())
             });
-        let vs_larger: Vec<Option<(f64, f64)>> = best
+        // (explained, p) and the comparison used (memory::judged)
+        let vs_larger: Vec<Option<((f64, f64), memory::Basis)>> = best
             .iter()
             .enumerate()
             .map(|(j, b)| {
@@ -815,11 +840,46 @@ pub fn diagnose_with_progress(
                 } else {
                     larger_eval
                 }?;
-                effects::versus_larger(&l.loss(mode), &e.loss(mode))
+                // the larger structure refined, for an own-output variant, is not a refit of
+                // the model's own structure: compared as scored (memory::judged)
+                let (basis, l0, l1) = if b.0 == Effect::OutputNonlinearity {
+                    (memory::Basis::EstimatedStart, l.loss(mode), e.loss(mode))
+                } else {
+                    memory::judged(e, l, mode)
+                };
+                effects::versus_larger(&l0, &l1).map(|v| (v, basis))
             })
             .collect();
         let larger_ok =
-            |j: usize| vs_larger[j].is_none_or(|v| effects::beats_user(v, tried, short));
+            |j: usize| vs_larger[j].is_none_or(|v| effects::beats_user(v.0, tried, short));
+        // a scheduling finding judged against the model's structure refit must also beat that
+        // structure refined by output error (effects::needs_refined_null): fitted only when
+        // such a finding passed every rule before
+        let refined_eval: Option<Eval> = best
+            .iter()
+            .enumerate()
+            .any(|(j, b)| passed[j] && larger_ok(j) && effects::needs_refined_null(&scored[b.1]))
+            .then(|| {
+                fit_spec(&effects::refined_null(&spec), train, &current.fit)
+                    .ok()
+                    .and_then(|f| Eval::new(&f.model, val).ok())
+            })
+            .flatten();
+        let vs_refined: Vec<Option<(f64, f64)>> = best
+            .iter()
+            .enumerate()
+            .map(|(j, b)| {
+                let s = &scored[b.1];
+                if !(passed[j] && larger_ok(j) && effects::needs_refined_null(s)) {
+                    return None;
+                }
+                let mode = b.0.metric();
+                let r = refined_eval.as_ref()?;
+                effects::versus_larger(&r.loss(mode), &s.eval.as_ref()?.loss(mode))
+            })
+            .collect();
+        let refined_ok =
+            |j: usize| vs_refined[j].is_none_or(|v| effects::beats_user(v, tried, short));
         // a fix must forget its initial state as the model's structure refit does
         // (memory::forgets_as_null): its score from the state estimated on the first held-out
         // samples must not lean on that state at the end of the record
@@ -827,25 +887,20 @@ pub fn diagnose_with_progress(
             .iter()
             .enumerate()
             .map(|(j, b)| {
-                if !(passed[j] && larger_ok(j)) || b.0.metric() != Mode::FreeRun {
+                if !(passed[j] && larger_ok(j) && refined_ok(j)) || b.0.metric() != Mode::FreeRun {
                     return None;
                 }
-                let s = &scored[b.1];
-                memory::memory(&s.fitted.as_ref()?.model, val, s.eval.as_ref()?).ok()
+                scored[b.1].eval.as_ref().map(memory::Memory::of)
             })
             .collect();
-        // the null's only when a candidate's is measured (two free runs)
-        let base_memory = memories
-            .iter()
-            .any(Option::is_some)
-            .then(|| memory::memory(&base.model, val, &base_eval).ok())
-            .flatten();
-        let memory_ok = |j: usize| match (&memories[j], &base_memory) {
-            (Some(c), Some(n)) => memory::forgets_as_null(c, n),
-            _ => true,
+        let base_memory = memory::Memory::of(&base_eval);
+        let memory_ok = |j: usize| {
+            memories[j]
+                .as_ref()
+                .is_none_or(|c| memory::forgets_as_null(c, &base_memory))
         };
         let sig: Vec<bool> = (0..best.len())
-            .map(|j| passed[j] && larger_ok(j) && memory_ok(j))
+            .map(|j| passed[j] && larger_ok(j) && refined_ok(j) && memory_ok(j))
             .collect();
         let larger_detail = larger.as_ref().map_or(String::new(), |l| l.detail.clone());
         // a noise model cannot explain the part of the residual an input-driven effect does;
@@ -894,18 +949,48 @@ pub fn diagnose_with_progress(
                         r.iter().map(|x| format!("{:.1e}", x.1)).collect::<Vec<_>>().join(", ")
                     ));
                 } else if let Some(r) = &replication[j] {
+                    let zero = rep_bases[j]
+                        .as_ref()
+                        .is_some_and(|b| b.contains(&memory::Basis::ZeroStartTail));
                     ev.push(format!(
-                        "refit on each half of the training data: explains {} of the held-out error (p = {})",
+                        "refit on each half of the training data: explains {} of the held-out error (p = {}){}",
                         r.iter().map(|x| format!("{:.1} %", 100.0 * x.0)).collect::<Vec<_>>().join(" and "),
-                        r.iter().map(|x| format!("{:.1e}", x.1)).collect::<Vec<_>>().join(", ")
+                        r.iter().map(|x| format!("{:.1e}", x.1)).collect::<Vec<_>>().join(", "),
+                        if zero {
+                            let b: Vec<memory::Basis> = rep_bases[j].iter().flatten().copied().collect();
+                            if b.windows(2).all(|w| w[0] == w[1]) {
+                                format!("; each compared with the null refit on the same half {}", b[0].describe())
+                            } else {
+                                format!(
+                                    "; compared with the null refit on the same half {}",
+                                    b.iter().map(|x| x.describe()).collect::<Vec<_>>().join(" and ")
+                                )
+                            }
+                        } else {
+                            String::new()
+                        }
                     ));
                 }
-                if let Some(v) = vs_larger[j] {
+                if s.basis == memory::Basis::ZeroStartTail {
+                    if let Some(e) = &s.eval {
+                        let null = s.cand.null.is_none().then_some(&base_eval);
+                        ev.push(symmetric_memory_evidence(e, null));
+                    }
+                }
+                if let Some(v) = vs_refined[j] {
                     ev.push(format!(
-                        "against the model's own structure with a larger past window ({larger_detail}{}): explains {:.1} % of its held-out error (p = {:.2e})",
-                        if effect == Effect::OutputNonlinearity { ", refined" } else { "" },
+                        "against the model's own structure refined by output error: explains {:.1} % of its held-out error (p = {:.2e})",
                         100.0 * v.0,
                         v.1
+                    ));
+                }
+                if let Some((v, basis)) = vs_larger[j] {
+                    ev.push(format!(
+                        "against the model's own structure with a larger past window ({larger_detail}{}): explains {:.1} % of its held-out error (p = {:.2e}; {})",
+                        if effect == Effect::OutputNonlinearity { ", refined" } else { "" },
+                        100.0 * v.0,
+                        v.1,
+                        basis.describe()
                     ));
                 }
                 let f = Finding {
@@ -917,6 +1002,8 @@ pub fn diagnose_with_progress(
                     p_value: p_of(j),
                     significant: sig[j] && explained >= effects::MIN_EXPLAINED,
                     replication: replication[j].as_ref().map(|r| r.iter().map(|x| x.0).collect()),
+                    basis: s.basis,
+                    replication_basis: rep_bases[j].clone(),
                     vaf: s.eval.as_ref().map(mean_vaf),
                     variants,
                     evidence: ev,
@@ -964,7 +1051,7 @@ pub fn diagnose_with_progress(
                     100.0 * v.0,
                     v.1
                 )
-            } else if let Some(v) = j.filter(|j| !larger_ok(*j)).and_then(|j| vs_larger[j]) {
+            } else if let Some((v, _)) = j.filter(|j| !larger_ok(*j)).and_then(|j| vs_larger[j]) {
                 format!(
                     "the model's own structure with a larger past window ({larger_detail}) removes that error as well: against it this variant explains {:.1} % of the held-out error (p = {:.2e}; {}); the error it removes is the bias of a past window too short for the model's own structure (see order-too-low)",
                     100.0 * v.0,
@@ -978,6 +1065,12 @@ pub fn diagnose_with_progress(
                             ALPHA / tried.max(1) as f64
                         )
                     }
+                )
+            } else if let Some(v) = j.filter(|j| !refined_ok(*j)).and_then(|j| vs_refined[j]) {
+                format!(
+                    "the model's own structure refined by output error removes that error as well: against it this variant explains {:.1} % of the held-out error (p = {:.2e}; a finding must improve on it as on the structure's refit); what it removes is the bias of the subspace estimate of the model's own structure, not a missing scheduling dependence",
+                    100.0 * v.0,
+                    v.1
                 )
             } else if let Some(m) = j.filter(|j| !memory_ok(*j)).and_then(|j| memories[j]) {
                 format!(
@@ -1010,6 +1103,7 @@ pub fn diagnose_with_progress(
                 effect: s.cand.effect.name(),
                 detail: s.cand.detail.clone(),
                 explained: s.explained,
+                basis: s.basis,
                 p_value: s.p_value,
                 error: s.error.clone(),
                 seconds: s.seconds,
