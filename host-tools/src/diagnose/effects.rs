@@ -1507,6 +1507,21 @@ pub enum Encompassed {
     Neither,
 }
 
+impl Encompassed {
+    /// The verdict from what the comprehensive structure explains of the richer and of the
+    /// simpler structure's held-out error, (explained, p) each: a structure adds when that
+    /// comparison passes [`significant`] at ALPHA / [`ENCOMPASSING_TESTS`].
+    fn of(richer_adds: (f64, f64), simpler_adds: (f64, f64)) -> Encompassed {
+        let adds = |v: (f64, f64)| significant(v.0, v.1, ENCOMPASSING_TESTS);
+        match (adds(richer_adds), adds(simpler_adds)) {
+            (true, false) => Encompassed::Richer,
+            (false, true) => Encompassed::Simpler,
+            (true, true) => Encompassed::Both,
+            (false, false) => Encompassed::Neither,
+        }
+    }
+}
+
 /// The encompassing test's numbers between a simpler finding S and a richer one R.
 #[derive(Debug, Clone)]
 pub struct Encompassing {
@@ -1586,13 +1601,7 @@ pub fn encompass(
     let l_r = richer.eval.as_ref()?.loss(mode);
     let richer_adds = versus(&l_s, &l_us);
     let simpler_adds = versus(&l_r, &l_ur);
-    let adds = |v: (f64, f64)| significant(v.0, v.1, ENCOMPASSING_TESTS);
-    let verdict = match (adds(richer_adds), adds(simpler_adds)) {
-        (true, false) => Encompassed::Richer,
-        (false, true) => Encompassed::Simpler,
-        (true, true) => Encompassed::Both,
-        (false, false) => Encompassed::Neither,
-    };
+    let verdict = Encompassed::of(richer_adds, simpler_adds);
     let detail = format!(
         "{} and {}",
         describe_addition(&simpler.cand),
@@ -1740,13 +1749,7 @@ fn encompass_order(
     } else {
         (ord_adds, own_adds)
     };
-    let adds = |v: (f64, f64)| significant(v.0, v.1, ENCOMPASSING_TESTS);
-    let verdict = match (adds(richer_adds), adds(simpler_adds)) {
-        (true, false) => Encompassed::Richer,
-        (false, true) => Encompassed::Simpler,
-        (true, true) => Encompassed::Both,
-        (false, false) => Encompassed::Neither,
-    };
+    let verdict = Encompassed::of(richer_adds, simpler_adds);
     let own_detail = own.cand.detail.split(" of the model's own output").next();
     let detail = format!(
         "{} with {}, refined through the loop; {} judged in its structure refined the same way",
