@@ -259,10 +259,7 @@ fn score_all(
             continue;
         }
         // a null that cannot be refit is left to `effects::score`, which reports why
-        if let Some(e) = fit_spec(ns, train, fit)
-            .ok()
-            .and_then(|f| Eval::new(&f.model, val).ok())
-        {
+        if let Some(e) = fit_eval(ns, train, val, fit) {
             nulls.push((key, e));
         }
     }
@@ -310,10 +307,17 @@ fn rank_by_own_error(findings: &mut [(Finding, usize)], scored: &[Scored]) {
     findings[..k].sort_by_key(|f| order.iter().position(|&i| i == f.1));
 }
 
-/// Whether a variant is fitted with the output-error refinement: an own-output channel, a
-/// structure refined as a whole, or one nested in a refined structure ([`fit_spec`]).
-fn fitted_refined(spec: &Spec) -> bool {
-    spec.arx.is_none() && (spec.refined || spec.nested_in.is_some() || spec.signals.has_feedback())
+/// `spec` refit on `train` ([`fit_spec`]) and evaluated on `val` ([`Eval::new`]); None when
+/// either fails.
+fn fit_eval(
+    spec: &Spec,
+    train: &Dataset,
+    val: &Dataset,
+    base_fit: &serde_json::Value,
+) -> Option<Eval> {
+    fit_spec(spec, train, base_fit)
+        .ok()
+        .and_then(|f| Eval::new(&f.model, val).ok())
 }
 
 /// Own held-out errors compared like with like (issue 14). A variant fitted with the
@@ -338,7 +342,7 @@ fn like_with_like_first(
         return;
     };
     let free = |s: &Scored| s.cand.effect.metric() == Mode::FreeRun;
-    if !free(top) || !fitted_refined(&top.cand.spec) {
+    if !free(top) || !top.cand.spec.fitted_refined() {
         return;
     }
     let Some(top_eval) = top.eval.as_ref() else {
@@ -358,13 +362,10 @@ fn like_with_like_first(
     let mut best: Option<(usize, f64, HeadToHead)> = None;
     for (j, (_, i)) in findings.iter().enumerate().skip(1) {
         let s = &scored[*i];
-        if !free(s) || fitted_refined(&s.cand.spec) || s.cand.spec.arx.is_some() {
+        if !free(s) || s.cand.spec.fitted_refined() || s.cand.spec.arx.is_some() {
             continue;
         }
-        let Some(e) = fit_spec(&effects::refined_null(&s.cand.spec), train, base_fit)
-            .ok()
-            .and_then(|f| Eval::new(&f.model, val).ok())
-        else {
+        let Some(e) = fit_eval(&effects::refined_null(&s.cand.spec), train, val, base_fit) else {
             continue;
         };
         let mse = e.mse(Mode::FreeRun);
@@ -687,11 +688,7 @@ pub fn diagnose_with_progress(
             let folds = effects::cv_folds(train, val);
             let nulls: Vec<Option<Eval>> = folds
                 .iter()
-                .map(|(fit_on, score_on)| {
-                    fit_spec(&spec, fit_on, &current.fit)
-                        .ok()
-                        .and_then(|f| Eval::new(&f.model, score_on).ok())
-                })
+                .map(|(fit_on, score_on)| fit_eval(&spec, fit_on, score_on, &current.fit))
                 .collect();
             if !folds.is_empty() && nulls.iter().all(Option::is_some) {
                 let nulls: Vec<Eval> = nulls.into_iter().flatten().collect();
@@ -728,11 +725,7 @@ pub fn diagnose_with_progress(
             let halves = effects::halves(train);
             let nulls: Vec<Option<Eval>> = halves
                 .iter()
-                .map(|h| {
-                    fit_spec(&spec, h, &current.fit)
-                        .ok()
-                        .and_then(|f| Eval::new(&f.model, val).ok())
-                })
+                .map(|h| fit_eval(&spec, h, val, &current.fit))
                 .collect();
             if nulls.iter().all(Option::is_some) {
                 let nulls: Vec<Eval> = nulls.into_iter().flatten().collect();
@@ -820,11 +813,7 @@ pub fn diagnose_with_progress(
                     .zip(&passed)
                     .any(|(b, ok)| *ok && b.0 == Effect::OutputNonlinearity)
             })
-            .and_then(|l| {
-                fit_spec(&effects::refined_null(&l.spec), train, &current.fit)
-                    .ok()
-                    .and_then(|f| Eval::new(&f.model, val).ok())
-            });
+            .and_then(|l| fit_eval(&effects::refined_null(&l.spec), train, val, &current.fit));
         // (explained, p) and the comparison used (memory::judged)
         let vs_larger: Vec<Option<((f64, f64), memory::Basis)>> = best
             .iter()
@@ -859,11 +848,7 @@ pub fn diagnose_with_progress(
             .iter()
             .enumerate()
             .any(|(j, b)| passed[j] && larger_ok(j) && effects::needs_refined_null(&scored[b.1]))
-            .then(|| {
-                fit_spec(&effects::refined_null(&spec), train, &current.fit)
-                    .ok()
-                    .and_then(|f| Eval::new(&f.model, val).ok())
-            })
+            .then(|| fit_eval(&effects::refined_null(&spec), train, val, &current.fit))
             .flatten();
         let vs_refined: Vec<Option<(f64, f64)>> = best
             .iter()

@@ -159,6 +159,14 @@ fn get_usize(fit: &Value, key: &str) -> Option<usize> {
 }
 
 impl Spec {
+    /// Whether [`fit_spec`] fits this structure with the output-error refinement: an
+    /// own-output channel, a structure refined as a whole, or one nested in a refined
+    /// structure (not the LPV-ARX path).
+    pub fn fitted_refined(&self) -> bool {
+        self.arx.is_none()
+            && (self.refined || self.nested_in.is_some() || self.signals.has_feedback())
+    }
+
     /// The refit settings of a model file: its signals and the settings of its `fit`
     /// record. Missing settings get the `lpvid pbsid` defaults and a note saying so.
     pub fn from_model(model: &ModelFile, notes: &mut Vec<String>) -> Result<Spec, RefitError> {
