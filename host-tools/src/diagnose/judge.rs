@@ -1,0 +1,498 @@
+//! The rules of a finding (issue 14; docs/diagnose-measured.md, "the rules of a finding").
+//! Each effect is represented by its best significant variant ([`effects::best_variants`]).
+//! Before it is a finding, that variant must pass, in this order: the full-data test
+//! ([`effects::significant`]; on a short record pooled with the cross-validation folds), the
+//! replication (each half of the training data, [`effects::replicated`], or the folds'
+//! agreement, [`effects::cv_agree`]), the refit of the model's own structure when it has a
+//! null of its own ([`effects::beats_user`]), that structure with a larger past window
+//! ([`effects::larger_past`]; not for order-too-low, which is that structure), that structure
+//! refined by output error (the scheduling effects, [`effects::needs_refined_null`]) and the
+//! memory rule ([`memory::forgets_as_null`]). A rule is tested only on a variant that passed
+//! the ones before it. [`Judgement`] keeps what each rule found: the evidence of a finding,
+//! and the one rule named when it is blocked.
+
+use std::cell::OnceCell;
+
+use super::effects::{self, evidence, Candidate, Effect, Eval, Finding, Scored};
+use super::memory::{self, Basis, Memory};
+use super::refit::{Fitted, Spec};
+use super::residual::{ResidualReport, ALPHA};
+use super::{fit_eval, mean_vaf, mode_name};
+use crate::data::Dataset;
+use crate::simulate::Mode;
+
+/// (explained, p): a head-to-head comparison of held-out errors ([`effects::versus`]).
+type Versus = (f64, f64);
+
+/// What one step's variants are judged with: the variants as scored and the structures the
+/// rules compare them with.
+pub(crate) struct Bench<'a> {
+    /// The model's structure.
+    pub spec: &'a Spec,
+    /// The training data the refits are fitted on.
+    pub train: &'a Dataset,
+    /// The held-out data they are scored on.
+    pub val: &'a Dataset,
+    /// The model's fit settings.
+    pub fit: &'a serde_json::Value,
+    /// Every variant of the step, scored.
+    pub scored: &'a [Scored],
+    /// How many variants were tried (the Bonferroni divisor).
+    pub tried: usize,
+    /// The null refit of the model's structure, evaluated on the held-out data.
+    pub base_eval: &'a Eval,
+    /// The model's structure with a larger past window ([`effects::larger_past`]).
+    pub larger: Option<&'a Candidate>,
+    /// ... and its evaluation among the scored variants.
+    pub larger_eval: Option<&'a Eval>,
+}
+
+/// One effect's variant and what each rule of a finding found for it (None: the rule was
+/// not reached, or does not apply to this variant).
+pub(crate) struct Judgement {
+    /// The effect.
+    pub effect: Effect,
+    /// The variant judged: the effect's best, or the alternative that replicated in its
+    /// place (index into the scored variants).
+    pub index: usize,
+    /// How many variants of the effect were scored.
+    pub variants: usize,
+    /// A short record's (t, p) of the held-out batches pooled with the folds'.
+    pub pooled: Option<(f64, f64)>,
+    /// The full-data test passed.
+    pub full_data: bool,
+    /// (explained, p) on each training half, or on each fold of a short record.
+    pub replication: Option<Vec<Versus>>,
+    /// How each half's refit was compared with the null refit on that half.
+    pub replication_basis: Option<Vec<Basis>>,
+    /// The best variant, when it did not replicate and this one did in its place, with what
+    /// it explained on the halves.
+    pub swapped_from: Option<(usize, Vec<Versus>)>,
+    /// Against the refit of the model's own structure (a variant with a null of its own).
+    pub vs_user: Option<Versus>,
+    /// Against the model's structure with a larger past window, and how they were compared.
+    pub vs_larger: Option<(Versus, Basis)>,
+    /// Against the model's structure refined by output error.
+    pub vs_refined: Option<Versus>,
+    /// How much its free run leans on its estimated start.
+    pub memory: Option<Memory>,
+    /// Every rule passed.
+    pub passed: bool,
+}
+
+/// Judge every effect's best variant of one step by the rules of a finding (module docs).
+/// Returns the judgements, one per effect with a significant variant, and whether the record
+/// was judged as a short one (blocked cross-validation, [`effects::short_record`]).
+pub(crate) fn judge(b: &Bench<'_>, notes: &mut Vec<String>) -> (Vec<Judgement>, bool) {
+    let scored = b.scored;
+    let best = effects::best_variants(scored, b.tried);
+    let mut js: Vec<Judgement> = best
+        .iter()
+        .map(|&(effect, index, variants)| Judgement {
+            effect,
+            index,
+            variants,
+            pooled: None,
+            full_data: false,
+            replication: None,
+            replication_basis: None,
+            swapped_from: None,
+            vs_user: None,
+            vs_larger: None,
+            vs_refined: None,
+            memory: None,
+            passed: false,
+        })
+        .collect();
+    // a short held-out record: blocked cross-validation over the record the diagnosis sees
+    // (effects::cv_folds): the held-out batches pooled with those of the training folds in
+    // one test, and the folds' agreement is the replication
+    let could = |j: &Judgement| {
+        let s = &scored[j.index];
+        s.error.is_none() && s.explained >= effects::MIN_EXPLAINED
+    };
+    let short =
+        effects::short_record(b.base_eval.loss(Mode::FreeRun).len()) && js.iter().any(could);
+    if short {
+        cross_validate(b, &mut js, could, notes);
+    }
+    for j in js.iter_mut() {
+        j.full_data = effects::significant(scored[j.index].explained, j.p(scored), b.tried);
+    }
+    if !short && js.iter().any(|j| j.full_data) {
+        replicate_on_halves(b, &mut js, notes);
+    }
+    let base_memory = Memory::of(b.base_eval);
+    // the structures only some rules compare with, refit when a variant first reaches them
+    let larger_refined: OnceCell<Option<Eval>> = OnceCell::new();
+    let refined: OnceCell<Option<Eval>> = OnceCell::new();
+    for j in js.iter_mut() {
+        let s = &scored[j.index];
+        let mode = j.effect.metric();
+        // a variant with its own null replaces the model's structure when applied: it must
+        // also beat the null refit of that structure, under the symmetric memory rule
+        // (memory::judged)
+        j.vs_user = s.cand.null.as_ref().and_then(|_| {
+            let (_, l0, l1) = memory::judged(s.eval.as_ref()?, b.base_eval, mode);
+            Some(effects::versus(&l0, &l1))
+        });
+        let replicated = j.replication.as_ref().is_none_or(|r| {
+            if short {
+                effects::cv_agree(s.explained, r)
+            } else {
+                effects::replicated(r)
+            }
+        });
+        if !(j.full_data && replicated && b.beaten(j.vs_user, short)) {
+            continue;
+        }
+        // every finding but order-too-low must also beat the model's own structure with a
+        // larger past window; an own-output variant, fitted with the output-error
+        // refinement, that structure refined the same way, compared as scored (it is not a
+        // refit of the model's own structure)
+        if j.effect != Effect::OrderTooLow {
+            j.vs_larger = s.eval.as_ref().and_then(|e| {
+                let (basis, l0, l1) = if j.effect == Effect::OutputNonlinearity {
+                    let l = larger_refined
+                        .get_or_init(|| {
+                            let l = b.larger?;
+                            fit_eval(&effects::refined_null(&l.spec), b.train, b.val, b.fit)
+                        })
+                        .as_ref()?;
+                    (Basis::EstimatedStart, l.loss(mode), e.loss(mode))
+                } else {
+                    memory::judged(e, b.larger_eval?, mode)
+                };
+                effects::versus_larger(&l0, &l1).map(|v| (v, basis))
+            });
+        }
+        if !b.beaten(j.vs_larger.map(|v| v.0), short) {
+            continue;
+        }
+        // a scheduling variant judged against the model's structure refit must also beat
+        // that structure refined by output error (effects::needs_refined_null)
+        if effects::needs_refined_null(s) {
+            j.vs_refined = s.eval.as_ref().and_then(|e| {
+                let r = refined
+                    .get_or_init(|| fit_eval(&effects::refined_null(b.spec), b.train, b.val, b.fit))
+                    .as_ref()?;
+                effects::versus_larger(&r.loss(mode), &e.loss(mode))
+            });
+        }
+        if !b.beaten(j.vs_refined, short) {
+            continue;
+        }
+        // a fix must forget its initial state as the model's structure refit does: its score
+        // from the state estimated on the first held-out samples must not lean on that state
+        // at the end of the record
+        if mode == Mode::FreeRun {
+            j.memory = s.eval.as_ref().map(Memory::of);
+        }
+        j.passed = j
+            .memory
+            .is_none_or(|m| memory::forgets_as_null(&m, &base_memory));
+    }
+    (js, short)
+}
+
+/// A short record's test: each variant that could be a finding refit on the cross-validation
+/// folds ([`effects::cross_fold`]), its held-out batches pooled with theirs.
+fn cross_validate(
+    b: &Bench<'_>,
+    js: &mut [Judgement],
+    could: impl Fn(&Judgement) -> bool,
+    notes: &mut Vec<String>,
+) {
+    let folds = effects::cv_folds(b.train, b.val);
+    let nulls: Option<Vec<Eval>> = folds
+        .iter()
+        .map(|(fit_on, score_on)| fit_eval(b.spec, fit_on, score_on, b.fit))
+        .collect();
+    let Some(nulls) = nulls.filter(|_| !folds.is_empty()) else {
+        notes.push("the null structure cannot be refit on the cross-validation folds: the short held-out record's test is not pooled with them".into());
+        return;
+    };
+    for j in js.iter_mut().filter(|j| could(j)) {
+        let s = &b.scored[j.index];
+        let f = effects::cross_fold(&s.cand, &folds, &nulls, b.fit);
+        j.pooled = Some(effects::pooled_p(&s.ratios, &f));
+        j.replication = Some(f.iter().map(|x| (x.explained, x.p_value)).collect());
+    }
+}
+
+/// The replication of each variant significant on the full data: refit on each half of the
+/// training data ([`effects::replicate`]). When the effect's best variant does not hold up,
+/// its next variants that pass every full-data test of a finding take its place, lowest
+/// held-out error first ([`effects::alternatives`]): on the plant family a quasi-LPV y^2 /
+/// |y| variant or a refined p^2 had the lowest error and its refit on a half diverged, while
+/// another variant of the same effect replicated. Each alternative with its own null must
+/// also beat the model's structure refit (on the planted output-offset plant,
+/// diagnose_planted seed 3, a scheduling-noise alternative that explained 100 % of its own
+/// LPV-ARX null's error replicated).
+fn replicate_on_halves(b: &Bench<'_>, js: &mut [Judgement], notes: &mut Vec<String>) {
+    let halves = effects::halves(b.train);
+    let nulls: Option<Vec<Eval>> = halves
+        .iter()
+        .map(|h| fit_eval(b.spec, h, b.val, b.fit))
+        .collect();
+    let Some(nulls) = nulls else {
+        notes.push("the null structure cannot be refit on half of the training data: findings are not replicated on independent halves".into());
+        return;
+    };
+    let rep = |i: usize| effects::replicate(&b.scored[i].cand, &halves, &nulls, b.val, b.fit);
+    for j in js.iter_mut().filter(|j| j.full_data) {
+        let (mut r, mut bases) = rep(j.index);
+        if !effects::replicated(&r) {
+            let alts =
+                effects::alternatives(b.scored, j.index, b.tried, b.base_eval, b.larger_eval);
+            for i in alts {
+                let (r2, b2) = rep(i);
+                if effects::replicated(&r2) {
+                    j.swapped_from = Some((j.index, r));
+                    j.index = i;
+                    r = r2;
+                    bases = b2;
+                    break;
+                }
+            }
+        }
+        j.replication = Some(r);
+        j.replication_basis = Some(bases);
+    }
+}
+
+impl Bench<'_> {
+    /// A comparison with one of the model's own structures passes (none made: passes).
+    fn beaten(&self, v: Option<Versus>, short: bool) -> bool {
+        v.is_none_or(|v| effects::beats_user(v, self.tried, short))
+    }
+
+    /// The level each variant's full-data test is held to.
+    fn level(&self) -> f64 {
+        ALPHA / self.tried.max(1) as f64
+    }
+}
+
+impl Judgement {
+    /// The p-value of the full-data test (pooled with the folds on a short record).
+    pub fn p(&self, scored: &[Scored]) -> f64 {
+        self.pooled.map_or(scored[self.index].p_value, |x| x.1)
+    }
+
+    /// The t statistic of the full-data test (pooled with the folds on a short record).
+    pub fn t(&self, scored: &[Scored]) -> f64 {
+        self.pooled.map_or(scored[self.index].t, |x| x.0)
+    }
+
+    /// The finding this judgement makes: `explained` is the fraction credited to it (a noise
+    /// model's discounted by what an input-driven finding explains), the evidence is the
+    /// residual tests' and every rule's that was reached.
+    pub fn finding(
+        &self,
+        b: &Bench<'_>,
+        explained: f64,
+        (free, one): (&ResidualReport, &ResidualReport),
+        base: &Fitted,
+    ) -> Finding {
+        let s = &b.scored[self.index];
+        let mut ev = evidence(self.effect, free, one, base, Some(s));
+        if let Some(e) = &s.error {
+            ev.push(format!("the refit failed: {e}"));
+        }
+        if let Some((k, r)) = &self.swapped_from {
+            ev.push(format!(
+                "in place of the variant with the lowest held-out error, {} ({:.1} %), which did not replicate (refit on each training half it explains {} of the null's error): the next variant that passes every full-data test",
+                b.scored[*k].cand.detail,
+                100.0 * b.scored[*k].explained,
+                r.iter().map(|x| format!("{:.1} % (p = {:.1e})", 100.0 * x.0, x.1)).collect::<Vec<_>>().join(" and ")
+            ));
+        }
+        if let (Some(r), Some((_, p))) = (&self.replication, self.pooled) {
+            ev.push(format!(
+                "short held-out record, blocked cross-validation in {} folds: refit without each of the {} blocks of the training data (on the other blocks and the held-out record) and scored on the block left out, it explains {} of the null's error there (p = {}); pooled with the held-out batches p = {p:.1e}",
+                r.len() + 1,
+                r.len(),
+                r.iter().map(|x| format!("{:.1} %", 100.0 * x.0)).collect::<Vec<_>>().join(" and "),
+                r.iter().map(|x| format!("{:.1e}", x.1)).collect::<Vec<_>>().join(", ")
+            ));
+        } else if let Some(r) = &self.replication {
+            ev.push(format!(
+                "refit on each half of the training data: explains {} of the held-out error (p = {}){}",
+                r.iter().map(|x| format!("{:.1} %", 100.0 * x.0)).collect::<Vec<_>>().join(" and "),
+                r.iter().map(|x| format!("{:.1e}", x.1)).collect::<Vec<_>>().join(", "),
+                self.halves_basis()
+            ));
+        }
+        if s.basis == Basis::ZeroStartTail {
+            if let Some(e) = &s.eval {
+                let null = s.cand.null.is_none().then_some(b.base_eval);
+                ev.push(symmetric_memory_evidence(e, null));
+            }
+        }
+        if let Some(v) = self.vs_refined {
+            ev.push(format!(
+                "against the model's own structure refined by output error: explains {:.1} % of its held-out error (p = {:.2e})",
+                100.0 * v.0,
+                v.1
+            ));
+        }
+        if let Some((v, basis)) = self.vs_larger {
+            ev.push(format!(
+                "against the model's own structure with a larger past window ({}{}): explains {:.1} % of its held-out error (p = {:.2e}; {})",
+                b.larger.map_or("", |l| l.detail.as_str()),
+                if self.effect == Effect::OutputNonlinearity { ", refined" } else { "" },
+                100.0 * v.0,
+                v.1,
+                basis.describe()
+            ));
+        }
+        Finding {
+            effect: self.effect.name(),
+            detail: s.cand.detail.clone(),
+            explained,
+            residual: mode_name(self.effect.metric()),
+            t: self.t(b.scored),
+            p_value: self.p(b.scored),
+            significant: self.passed && explained >= effects::MIN_EXPLAINED,
+            replication: self
+                .replication
+                .as_ref()
+                .map(|r| r.iter().map(|x| x.0).collect()),
+            basis: s.basis,
+            replication_basis: self.replication_basis.clone(),
+            vaf: s.eval.as_ref().map(mean_vaf),
+            variants: self.variants,
+            evidence: ev,
+            blocked_by: None,
+        }
+    }
+
+    /// How the halves' refits were compared with their nulls, when not both from the
+    /// estimated start (for the replication's evidence line).
+    fn halves_basis(&self) -> String {
+        let Some(b) = self
+            .replication_basis
+            .as_ref()
+            .filter(|b| b.contains(&Basis::ZeroStartTail))
+        else {
+            return String::new();
+        };
+        if b.windows(2).all(|w| w[0] == w[1]) {
+            format!(
+                "; each compared with the null refit on the same half {}",
+                b[0].describe()
+            )
+        } else {
+            format!(
+                "; compared with the null refit on the same half {}",
+                b.iter()
+                    .map(|x| x.describe())
+                    .collect::<Vec<_>>()
+                    .join(" and ")
+            )
+        }
+    }
+
+    /// The rule that keeps `f` (this judgement's finding) from being a finding, in words, for
+    /// the stop line and the summary (human text and JSON say the same). The comparisons with
+    /// the model's own structures are named before the replication, as they were tested on
+    /// the full data.
+    pub fn blocked_by(&self, f: &Finding, b: &Bench<'_>, short: bool) -> String {
+        let p_max = b.level();
+        let s = &b.scored[self.index];
+        let beaten = |v: Option<Versus>| b.beaten(v, short);
+        let replicated = |r: &[Versus]| {
+            if short {
+                effects::cv_agree(s.explained, r)
+            } else {
+                effects::replicated(r)
+            }
+        };
+        if let Some(e) = &s.error {
+            format!("its refit failed ({e})")
+        } else if f.explained < effects::MIN_EXPLAINED {
+            format!(
+                "it explains {:.1} % < {:.0} %",
+                100.0 * f.explained,
+                100.0 * effects::MIN_EXPLAINED
+            )
+        } else if f.p_value >= p_max {
+            format!("p = {:.2e} is not below {p_max:.1e}", f.p_value)
+        } else if let Some(v) = self.vs_user.filter(|v| !beaten(Some(*v))) {
+            format!(
+                "it is judged against its own null; against the refit of the model's own structure it explains {:.1} % of the held-out error (p = {:.2e}), and a fix must improve on that model",
+                100.0 * v.0,
+                v.1
+            )
+        } else if let Some((v, _)) = self.vs_larger.filter(|v| !beaten(Some(v.0))) {
+            format!(
+                "the model's own structure with a larger past window ({}) removes that error as well: against it this variant explains {:.1} % of the held-out error (p = {:.2e}; {}); the error it removes is the bias of a past window too short for the model's own structure (see order-too-low)",
+                b.larger.map_or("", |l| l.detail.as_str()),
+                100.0 * v.0,
+                v.1,
+                if short {
+                    "a finding must have a lower held-out error than it".to_string()
+                } else {
+                    format!(
+                        "a finding must improve on it by >= {:.0} % at p < {p_max:.1e}",
+                        100.0 * effects::MIN_EXPLAINED,
+                    )
+                }
+            )
+        } else if let Some(v) = self.vs_refined.filter(|v| !beaten(Some(*v))) {
+            format!(
+                "the model's own structure refined by output error removes that error as well: against it this variant explains {:.1} % of the held-out error (p = {:.2e}; a finding must improve on it as on the structure's refit); what it removes is the bias of the subspace estimate of the model's own structure, not a missing scheduling dependence",
+                100.0 * v.0,
+                v.1
+            )
+        } else if let Some(m) = self.memory.filter(|_| !self.passed) {
+            format!(
+                "its free run leans on the initial state estimated on the first held-out samples: at the end of the held-out record that state still moves its output by {:.3} (mean square, normalised) against its own error of {:.3} there, while the model's structure refit forgets its start; a fix must not depend on where its simulation starts",
+                m.influence, m.error
+            )
+        } else if let Some(r) = self.replication.as_ref().filter(|r| !replicated(r)) {
+            if short {
+                format!(
+                    "its cross-validation folds disagree (held out: explains {:.1} %; refit without each training block and scored on it: {}; all folds but one need explained > 0)",
+                    100.0 * f.explained,
+                    r.iter().map(|x| format!("{:.1} %", 100.0 * x.0)).collect::<Vec<_>>().join(", ")
+                )
+            } else {
+                format!(
+                    "it is not replicated on the two halves of the training data (explains {}, p = {}; each half needs explained > 0 and p < {})",
+                    r.iter().map(|x| format!("{:.1} %", 100.0 * x.0)).collect::<Vec<_>>().join(" and "),
+                    r.iter().map(|x| format!("{:.1e}", x.1)).collect::<Vec<_>>().join(", "),
+                    effects::REPLICATION_ALPHA
+                )
+            }
+        } else {
+            "it is below the noise threshold".to_string()
+        }
+    }
+}
+
+/// The evidence line of a variant compared with its null under the symmetric memory rule
+/// ([`memory::basis`]): with `null` the null refit of the model's structure (a variant with
+/// its own null structure: None, only the rule is named), both runs' dependence on their
+/// estimated starts and what the variant explains from the estimated states, as it would
+/// have been judged without the rule.
+fn symmetric_memory_evidence(cand: &Eval, null: Option<&Eval>) -> String {
+    let rule = format!(
+        "compared with its null {}",
+        memory::Basis::ZeroStartTail.describe()
+    );
+    let Some(null) = null else {
+        return rule;
+    };
+    let (c, n) = (Memory::of(cand), Memory::of(null));
+    let v = effects::versus(&null.loss(Mode::FreeRun), &cand.loss(Mode::FreeRun));
+    format!(
+        "{rule}: at the end of the held-out record the null refit's estimated start moves its output by {:.3e} (mean square, normalised) against its own error of {:.3e} there (it leans on that start as a free offset or drift), this variant's by {:.3e} against {:.3e} (it forgets its start); from the estimated initial states over all scored rows it explains {:.1} % (p = {:.1e})",
+        n.influence,
+        n.error,
+        c.influence,
+        c.error,
+        100.0 * v.0,
+        v.1
+    )
+}
