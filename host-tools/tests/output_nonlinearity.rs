@@ -247,10 +247,10 @@ fn one(plant: Plant, seed: u64) -> (bool, bool, f64, bool, String) {
                 "    oracle (true channel, refined): explained {ex:.3} of the refined null, p {p:.1e}; ratio to the user's model {r_est:.2} (x0 estimated), {r_zero:.2} (x0 = 0)"
             );
         }
-        for f in o.report.findings.iter().take(3) {
+        for f in o.report.findings.iter().take(4) {
             println!(
-                "    finding {} {} {:.3} p {:.1e} rep {:?} sig {}",
-                f.effect, f.detail, f.explained, f.p_value, f.replication, f.significant
+                "    finding {} {} {:.3} p {:.1e} rep {:?} sig {} blocked {:?}",
+                f.effect, f.detail, f.explained, f.p_value, f.replication, f.significant, f.blocked_by
             );
         }
         // the first line of the first finding's evidence: the ranking rule that put it there
