@@ -250,7 +250,13 @@ fn one(plant: Plant, seed: u64) -> (bool, bool, f64, bool, String) {
         for f in o.report.findings.iter().take(4) {
             println!(
                 "    finding {} {} {:.3} p {:.1e} rep {:?} sig {} blocked {:?}",
-                f.effect, f.detail, f.explained, f.p_value, f.replication, f.significant, f.blocked_by
+                f.effect,
+                f.detail,
+                f.explained,
+                f.p_value,
+                f.replication,
+                f.significant,
+                f.blocked_by
             );
         }
         // the first line of the first finding's evidence: the ranking rule that put it there
