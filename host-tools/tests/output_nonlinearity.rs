@@ -429,3 +429,28 @@ fn an_own_output_channel_that_adds_to_a_larger_past_window_is_named() {
     let ratio = mse(&id.model, &val) / mse(&o.model, &val);
     assert!(ratio >= 4.0, "{desc}: error ratio {ratio:.2}");
 }
+
+/// An effect is a finding when one of its variants passes every rule (`diagnose::judge`,
+/// second chance). On the physical tank 4024 (fresh range, found by `LPVID_SEEDS=4004,1
+/// LPVID_PLANT=Tank`) the own-output variant with the lowest held-out error, a Lur'e
+/// sin(5.5 y1), replicated but leaned on its estimated start (0.303 against its own error of
+/// 0.005 at the end of the record) and was blocked, so input-nonlinearity u1^2 was named and
+/// applied (5.57x). Now the effect's next variant, the Lur'e sqrt|y1| channel (the tank's
+/// true outflow, its oracle 11.00x from the zero state), goes through every rule in its place
+/// and is applied: measured 11.00x.
+#[test]
+fn an_effect_whose_best_variant_leans_on_its_start_is_named_by_the_next() {
+    let (id, o, val, desc, _) = diagnosed(Plant::Tank, 4024);
+    let f = &o.report.findings[0];
+    assert_eq!(f.effect, "output-nonlinearity", "{desc}: {f:#?}");
+    assert!(f.significant, "{desc}: {f:#?}");
+    assert!(
+        f.evidence.iter().any(|e| e
+            .starts_with("in place of the variant with a lower held-out error")
+            && e.contains("leans on the initial state")),
+        "{desc}: {:#?}",
+        f.evidence
+    );
+    let ratio = mse(&id.model, &val) / mse(&o.model, &val);
+    assert!(ratio >= 8.0, "{desc}: error ratio {ratio:.2}");
+}
