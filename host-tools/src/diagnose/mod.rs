@@ -451,7 +451,7 @@ fn prefer_simpler_first(
     };
     let (s, r) = (&scored[order[k]], &scored[order[0]]);
     let (sn, rn) = (s.cand.effect.name(), r.cand.effect.name());
-    let Some(e) = effects::encompass(s, r, train, val, base_fit) else {
+    let Some(e) = effects::encompass(s, r, scored, train, val, base_fit) else {
         let mut f = findings.remove(k);
         f.0.evidence.insert(0, why);
         findings.insert(0, f);
@@ -1011,6 +1011,9 @@ pub fn diagnose_with_progress(
             tried,
             (train, val, &current.fit),
         );
+        // the two scheduling effects judged by the encompassing test also when parsimony did not
+        // reorder them (effects::scheduling_pair_first)
+        effects::scheduling_pair_first(&mut findings[..k], &scored, train, val, &current.fit);
         // the rule that blocked each finding, for the stop line and the summary (human text
         // and JSON say the same)
         for (f, i) in findings.iter_mut() {
