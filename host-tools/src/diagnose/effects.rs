@@ -1691,9 +1691,10 @@ fn encompass_refined(
 
 /// The encompassing test ([`encompass`]) of the two scheduling effects also when the first
 /// significant finding already comes first without the parsimony rule (its own held-out error
-/// is the lowest): on the family's scheduling-nonlinearity plants a refined scheduled output
-/// equation came first by its own error ahead of a p1^2 basis fitted by PBSID (seeds 31002,
-/// 37003: docs/bench-diagnose.md, helper h21sched), and the test was not asked. `findings`:
+/// is the lowest): on the family's scheduling-nonlinearity plant 35000 a refined scheduled
+/// output equation came first by its own error ahead of p1^2 + p1^3 fitted by PBSID, the test
+/// was not asked and the output equation was named (docs/bench-diagnose.md, helper h21sched;
+/// judged like with like, p^2 adds 31 % to it, it adds nothing to p^2). `findings`:
 /// the significant findings, first first. When the first is a scheduling effect and a later
 /// one is the other, the test is made (simpler and richer by [`parameter_count`]); the effect
 /// it names (it adds to the other, the other adds nothing to it) goes first; both or neither:
