@@ -426,7 +426,7 @@ fn prefer_simpler_first(
     };
     let (s, r) = (&scored[order[k]], &scored[order[0]]);
     let (sn, rn) = (s.cand.effect.name(), r.cand.effect.name());
-    let Some(e) = effects::encompass(s, r, train, val, base_fit) else {
+    let Some(e) = effects::encompass(s, r, scored, train, val, base_fit) else {
         let mut f = findings.remove(k);
         f.0.evidence.insert(0, why);
         findings.insert(0, f);
@@ -834,6 +834,9 @@ fn diagnose_step(
     prefer_simpler_first(&mut findings, &scored, tried, (train, val, fit));
     let k = findings.iter().take_while(|f| f.0.significant).count();
     like_with_like_first(&mut findings[..k], &scored, tried, (train, val, fit));
+    // the two scheduling effects judged by the encompassing test also when parsimony did not
+    // reorder them (effects::scheduling_pair_first)
+    effects::scheduling_pair_first(&mut findings[..k], &scored, train, val, fit);
     // the rule that blocked each finding, for the stop line and the summary (human text
     // and JSON say the same)
     for (f, i) in findings.iter_mut().filter(|f| !f.0.significant) {
