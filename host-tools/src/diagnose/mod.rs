@@ -847,7 +847,12 @@ pub fn diagnose_with_progress(
         let refined_eval: Option<Eval> = best
             .iter()
             .enumerate()
-            .any(|(j, b)| passed[j] && larger_ok(j) && effects::needs_refined_null(&scored[b.1]))
+            .any(|(j, b)| {
+                let s = &scored[b.1];
+                passed[j]
+                    && larger_ok(j)
+                    && (effects::needs_refined_null(s) || effects::needs_states_check(s))
+            })
             .then(|| fit_eval(&effects::refined_null(&spec), train, val, &current.fit))
             .flatten();
         let vs_refined: Vec<Option<(f64, f64)>> = best
@@ -863,8 +868,23 @@ pub fn diagnose_with_progress(
                 effects::versus_larger(&r.loss(mode), &s.eval.as_ref()?.loss(mode))
             })
             .collect();
-        let refined_ok =
-            |j: usize| vs_refined[j].is_none_or(|v| effects::beats_user(v, tried, short));
+        // coloured-noise and order-too-low against that structure refined
+        // (effects::states_check: a white refined residual; the order refined like with like)
+        let states: Vec<Option<effects::StatesCheck>> = best
+            .iter()
+            .enumerate()
+            .map(|(j, b)| {
+                let r = refined_eval
+                    .as_ref()
+                    .filter(|_| passed[j] && larger_ok(j))?;
+                let refit = |sp: &Spec| fit_eval(sp, train, val, &current.fit);
+                effects::states_check(&scored[b.1], r, refit, tried, short)
+            })
+            .collect();
+        let refined_ok = |j: usize| {
+            vs_refined[j].is_none_or(|v| effects::beats_user(v, tried, short))
+                && states[j].as_ref().is_none_or(|c| c.passes)
+        };
         // a fix must forget its initial state as the model's structure refit does
         // (memory::forgets_as_null): its score from the state estimated on the first held-out
         // samples must not lean on that state at the end of the record
@@ -962,6 +982,9 @@ pub fn diagnose_with_progress(
                         ev.push(symmetric_memory_evidence(e, null));
                     }
                 }
+                if let Some(c) = states[j].as_ref().filter(|c| c.passes) {
+                    ev.push(c.text.clone());
+                }
                 if let Some(v) = vs_refined[j] {
                     ev.push(format!(
                         "against the model's own structure refined by output error: explains {:.1} % of its held-out error (p = {:.2e})",
@@ -1051,6 +1074,8 @@ pub fn diagnose_with_progress(
                         )
                     }
                 )
+            } else if let Some(c) = j.and_then(|j| states[j].as_ref()).filter(|c| !c.passes) {
+                c.text.clone()
             } else if let Some(v) = j.filter(|j| !refined_ok(*j)).and_then(|j| vs_refined[j]) {
                 format!(
                     "the model's own structure refined by output error removes that error as well: against it this variant explains {:.1} % of the held-out error (p = {:.2e}; a finding must improve on it as on the structure's refit); what it removes is the bias of the subspace estimate of the model's own structure, not a missing scheduling dependence",
