@@ -868,6 +868,12 @@ pub fn diagnose_with_progress(
                 effects::versus_larger(&r.loss(mode), &s.eval.as_ref()?.loss(mode))
             })
             .collect();
+        if let Some(n) = refined_eval
+            .as_ref()
+            .and_then(|r| effects::refined_note(&base_eval, r, tried))
+        {
+            notes.push(n);
+        }
         // coloured-noise and order-too-low against that structure refined
         // (effects::states_check: a white refined residual; the order refined like with like)
         let states: Vec<Option<effects::StatesCheck>> = best
