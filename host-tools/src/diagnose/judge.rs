@@ -6,11 +6,12 @@
 //! agreement, [`effects::cv_agree`]), the refit of the model's own structure when it has a
 //! null of its own ([`effects::beats_user`]), that structure with a larger past window
 //! ([`effects::larger_past`]; not for order-too-low, which is that structure), that structure
-//! refined by output error (the scheduling effects, [`effects::needs_refined_null`]) and the
-//! memory rule ([`memory::forgets_as_null`]). A rule is tested only on a variant that passed
-//! the ones before it. An effect is a finding when one of its variants passes every rule: a
-//! best variant that does not replicate, or replicates and fails a later rule, gives way to
-//! the effect's next variants ([`effects::alternatives`]). [`Judgement`] keeps what each rule
+//! refined by output error (the scheduling effects, [`effects::needs_refined_null`];
+//! coloured-noise and order-too-low by [`effects::states_check`]) and the memory rule
+//! ([`memory::forgets_as_null`]). A rule is tested only on a variant that passed the ones
+//! before it. An effect is a finding when one of its variants passes every rule: a best
+//! variant that does not replicate, or replicates and fails a later rule, gives way to the
+//! effect's next variants ([`effects::alternatives`]). [`Judgement`] keeps what each rule
 //! found: the evidence of a finding, and the one rule named when it is blocked.
 
 use std::cell::OnceCell;
@@ -79,6 +80,9 @@ pub(crate) struct Judgement {
     pub vs_larger: Option<(Versus, Basis)>,
     /// Against the model's structure refined by output error.
     pub vs_refined: Option<Versus>,
+    /// A coloured-noise or order-too-low variant against that structure refined
+    /// ([`effects::states_check`]).
+    pub states: Option<effects::StatesCheck>,
     /// How much its free run leans on its estimated start.
     pub memory: Option<Memory>,
     /// Every rule passed.
@@ -106,6 +110,7 @@ pub(crate) fn judge(b: &Bench<'_>, notes: &mut Vec<String>) -> (Vec<Judgement>, 
             vs_user: None,
             vs_larger: None,
             vs_refined: None,
+            states: None,
             memory: None,
             passed: false,
         })
@@ -145,6 +150,15 @@ pub(crate) fn judge(b: &Bench<'_>, notes: &mut Vec<String>) -> (Vec<Judgement>, 
                 *j = alt;
             }
         }
+    }
+    // when the refined structure was fitted and predicts much better than the refit, say so
+    if let Some(n) = refs
+        .refined
+        .get()
+        .and_then(Option::as_ref)
+        .and_then(|r| effects::refined_note(b.base_eval, r, b.tried))
+    {
+        notes.push(n);
     }
     (js, short)
 }
@@ -224,6 +238,15 @@ fn replicate_on_halves(
 /// held-out data.
 type Halves = ([Dataset; 2], Vec<Eval>);
 
+impl References {
+    /// The model's structure refined by output error, fitted when a rule first needs it.
+    fn refined(&self, b: &Bench<'_>) -> Option<&Eval> {
+        self.refined
+            .get_or_init(|| fit_eval(&effects::refined_null(b.spec), b.train, b.val, b.fit))
+            .as_ref()
+    }
+}
+
 /// The structures some rules compare with, refit when a variant first reaches them.
 struct References {
     /// The null refit's memory ([`memory::forgets_as_null`]).
@@ -271,6 +294,7 @@ fn second_chance(
             vs_user: None,
             vs_larger: None,
             vs_refined: None,
+            states: None,
             memory: None,
             passed: false,
         };
@@ -332,21 +356,22 @@ impl Bench<'_> {
         // that structure refined by output error (effects::needs_refined_null)
         if effects::needs_refined_null(s) {
             j.vs_refined = s.eval.as_ref().and_then(|e| {
-                let r = refs
-                    .refined
-                    .get_or_init(|| {
-                        fit_eval(
-                            &effects::refined_null(self.spec),
-                            self.train,
-                            self.val,
-                            self.fit,
-                        )
-                    })
-                    .as_ref()?;
+                let r = refs.refined(self)?;
                 effects::versus_larger(&r.loss(mode), &e.loss(mode))
             });
         }
         if !self.beaten(j.vs_refined, short) {
+            return;
+        }
+        // coloured-noise and order-too-low against that structure refined
+        // (effects::states_check: a white refined residual; the order refined like with like)
+        if effects::needs_states_check(s) {
+            j.states = refs.refined(self).and_then(|r| {
+                let refit = |sp: &Spec| fit_eval(sp, self.train, self.val, self.fit);
+                effects::states_check(s, r, refit, self.tried, short)
+            });
+        }
+        if !j.states.as_ref().is_none_or(|c| c.passes) {
             return;
         }
         // a fix must forget its initial state as the model's structure refit does: its score
@@ -433,6 +458,9 @@ impl Judgement {
                 let null = s.cand.null.is_none().then_some(b.base_eval);
                 ev.push(symmetric_memory_evidence(e, null));
             }
+        }
+        if let Some(c) = self.states.as_ref().filter(|c| c.passes) {
+            ev.push(c.text.clone());
         }
         if let Some(v) = self.vs_refined {
             ev.push(format!(
@@ -566,6 +594,8 @@ impl Judgement {
                     )
                 }
             )
+            } else if let Some(c) = self.states.as_ref().filter(|c| !c.passes) {
+                c.text.clone()
             } else if let Some(v) = self.vs_refined.filter(|v| !beaten(Some(*v))) {
                 format!(
                 "the model's own structure refined by output error removes that error as well: against it this variant explains {:.1} % of the held-out error (p = {:.2e}; a finding must improve on it as on the structure's refit); what it removes is the bias of the subspace estimate of the model's own structure, not a missing scheduling dependence",

@@ -1,0 +1,154 @@
+//! Clean plants of the family (the user's model has the plant's structure) and the rules that
+//! keep them clean (issue 14, helper h21cn; docs/bench-diagnose.md, "coloured-noise and
+//! order-too-low against the structure refined"): a `coloured-noise` finding needs a
+//! refined free-run residual that is not white, an `order-too-low` finding its structure
+//! refined beating the model's structure refined (`effects::states_check`). Run in release
+//! mode.
+
+mod diagnose_support;
+
+use diagnose_support::family::{diagnose_one, run_one};
+
+/// clean plant 31002 (order 4, affine in p1, past window 7, white output noise 1.9 %): an AR
+/// noise model on top of K explained 10.2 % of the subspace refit's one-step error,
+/// replicated (9.0 %, 3.4 %), and was named. The structure refined by output error explains
+/// 68 % of that error with no noise model, and its free-run residual is white (Ljung-Box
+/// p = 0.50): the noise is not coloured. Nothing is named now.
+#[test]
+fn a_noise_model_over_a_white_refined_residual_is_not_a_finding() {
+    let (_, out) = diagnose_one("clean", 31002, 1500);
+    let r = &out.report;
+    for f in &r.findings {
+        println!(
+            "{} ({}) {:.3} {:?}",
+            f.effect, f.detail, f.explained, f.blocked_by
+        );
+    }
+    assert!(r.findings.iter().all(|f| !f.significant));
+    assert!(r.applied.is_empty());
+    let cn = r
+        .findings
+        .iter()
+        .find(|f| f.effect == "coloured-noise")
+        .expect("a coloured-noise finding");
+    // above the noise threshold against the subspace refit, blocked by the refined residual
+    assert!(cn.explained >= 0.10, "{}", cn.explained);
+    let why = cn.blocked_by.as_deref().unwrap_or("");
+    assert!(why.contains("is white (Ljung-Box p = "), "{why}");
+    let p: f64 = why
+        .split("Ljung-Box p = ")
+        .nth(1)
+        .and_then(|s| s.split_whitespace().next())
+        .and_then(|s| s.parse().ok())
+        .expect("the p-value in the reason");
+    assert!(p >= 0.01, "{p}");
+}
+
+/// clean plant 31003 (order 4, affine in p1, past window 7): order 6 explained 27.2 % of the
+/// subspace refit's free-run error, replicated (6.5 %, 15.5 %), and was named (1.24x); a noise
+/// model with two more states 23.5 % of the one-step error. Refined by output error like the
+/// user's structure, order 6 explains -57 % of the refined structure's error, and the refined
+/// residual is white (p = 0.044): neither is a finding.
+#[test]
+fn a_larger_order_the_refined_structure_matches_is_not_a_finding() {
+    let (_, out) = diagnose_one("clean", 31003, 1500);
+    let r = &out.report;
+    for f in &r.findings {
+        println!(
+            "{} ({}) {:.3} {:?}",
+            f.effect, f.detail, f.explained, f.blocked_by
+        );
+    }
+    assert!(r.findings.iter().all(|f| !f.significant));
+    assert!(r.applied.is_empty());
+    let otl = r
+        .findings
+        .iter()
+        .find(|f| f.effect == "order-too-low")
+        .expect("an order-too-low finding");
+    assert!(otl.explained >= 0.2, "{}", otl.explained);
+    let why = otl.blocked_by.as_deref().unwrap_or("");
+    assert!(why.contains("refined the same way"), "{why}");
+    let explained: f64 = why
+        .split("this structure explains ")
+        .nth(1)
+        .and_then(|s| s.split_whitespace().next())
+        .and_then(|s| s.parse().ok())
+        .expect("what the refined order explains");
+    assert!(explained < 10.0, "{explained}");
+    let cn = r.findings.iter().find(|f| f.effect == "coloured-noise");
+    if let Some(cn) = cn {
+        assert!(!cn.significant);
+    }
+}
+
+/// clean plant 37000 (order 4, affine in p1, past window 7 for frozen poles that need more):
+/// the subspace refit's one-step predictor is unstable, and a past window of 9 explained
+/// 95.5 % of its free-run error (named order-too-low, 18.65x). The user's structure refined
+/// by output error explains 99.7 % (350x), and refined, the past window of 9 adds nothing:
+/// the deficiency is the estimate, which the report says in a note, not a missing state.
+#[test]
+fn a_biased_estimate_is_a_note_not_a_missing_state() {
+    let (_, out) = diagnose_one("clean", 37000, 1500);
+    let r = &out.report;
+    for n in &r.notes {
+        println!("note: {n}");
+    }
+    assert!(r.findings.iter().all(|f| !f.significant));
+    assert!(r.applied.is_empty());
+    let note = r
+        .notes
+        .iter()
+        .find(|n| n.contains("refined by output error (lpvid pbsid --refine) explains"))
+        .expect("the refined structure's note");
+    let explained: f64 = note
+        .split("explains ")
+        .nth(1)
+        .and_then(|s| s.split_whitespace().next())
+        .and_then(|s| s.parse().ok())
+        .expect("what the refined structure explains");
+    assert!(explained > 90.0, "{explained}");
+}
+
+/// The planted effects the rules must keep: coloured-noise 33000 (AR noise, order 1, past 3)
+/// is named with the refined residual not white, order-too-low 31003 (a resonant mode
+/// 0.78e^+-1.32i missing, past window 7) with order 5 refined beating the structure refined
+/// (71.6 % of its error); both fixes lower the held-out error as before the rule (20.64x
+/// one-step, 2.37x free run).
+#[test]
+fn coloured_noise_and_missing_states_are_still_named() {
+    let (_, out) = diagnose_one("coloured-noise", 33000, 1500);
+    let f = out.report.findings.first().expect("findings");
+    println!("{} ({}) {:?}", f.effect, f.detail, f.evidence);
+    assert_eq!(f.effect, "coloured-noise");
+    assert!(f.significant);
+    assert!(
+        f.evidence.iter().any(|e| e.contains("is not white")),
+        "{:?}",
+        f.evidence
+    );
+    let (_, out) = diagnose_one("order-too-low", 31003, 1500);
+    let f = out.report.findings.first().expect("findings");
+    println!("{} ({}) {:?}", f.effect, f.detail, f.evidence);
+    assert_eq!(f.effect, "order-too-low");
+    assert!(f.significant);
+    assert!(
+        f.evidence
+            .iter()
+            .any(|e| e.contains("refined by output error like the model's own structure")),
+        "{:?}",
+        f.evidence
+    );
+    for (effect, seed, at_least) in [
+        ("coloured-noise", 33000, 10.0),
+        ("order-too-low", 31003, 2.0),
+    ] {
+        let run = run_one(effect, seed, 1500);
+        println!(
+            "{effect} {seed}: named {} ratio {:.2}",
+            run.named, run.ratio
+        );
+        assert_eq!(run.named, effect);
+        assert!(run.ratio > at_least, "{}", run.ratio);
+    }
+}
