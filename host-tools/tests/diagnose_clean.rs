@@ -7,7 +7,7 @@
 
 mod diagnose_support;
 
-use diagnose_support::family::{diagnose_one, run_one};
+use diagnose_support::family::{blocked_finding, diagnose_one, number_after, run_one};
 
 /// clean plant 31002 (order 4, affine in p1, past window 7, white output noise 1.9 %): an AR
 /// noise model on top of K explained 10.2 % of the subspace refit's one-step error,
@@ -17,30 +17,11 @@ use diagnose_support::family::{diagnose_one, run_one};
 #[test]
 fn a_noise_model_over_a_white_refined_residual_is_not_a_finding() {
     let (_, out) = diagnose_one("clean", 31002, 1500);
-    let r = &out.report;
-    for f in &r.findings {
-        println!(
-            "{} ({}) {:.3} {:?}",
-            f.effect, f.detail, f.explained, f.blocked_by
-        );
-    }
-    assert!(r.findings.iter().all(|f| !f.significant));
-    assert!(r.applied.is_empty());
-    let cn = r
-        .findings
-        .iter()
-        .find(|f| f.effect == "coloured-noise")
-        .expect("a coloured-noise finding");
+    let (cn, why) = blocked_finding(&out.report, "coloured-noise");
     // above the noise threshold against the subspace refit, blocked by the refined residual
     assert!(cn.explained >= 0.10, "{}", cn.explained);
-    let why = cn.blocked_by.as_deref().unwrap_or("");
     assert!(why.contains("is white (Ljung-Box p = "), "{why}");
-    let p: f64 = why
-        .split("Ljung-Box p = ")
-        .nth(1)
-        .and_then(|s| s.split_whitespace().next())
-        .and_then(|s| s.parse().ok())
-        .expect("the p-value in the reason");
+    let p = number_after(why, "Ljung-Box p = ");
     assert!(p >= 0.01, "{p}");
 }
 
@@ -53,28 +34,10 @@ fn a_noise_model_over_a_white_refined_residual_is_not_a_finding() {
 fn a_larger_order_the_refined_structure_matches_is_not_a_finding() {
     let (_, out) = diagnose_one("clean", 31003, 1500);
     let r = &out.report;
-    for f in &r.findings {
-        println!(
-            "{} ({}) {:.3} {:?}",
-            f.effect, f.detail, f.explained, f.blocked_by
-        );
-    }
-    assert!(r.findings.iter().all(|f| !f.significant));
-    assert!(r.applied.is_empty());
-    let otl = r
-        .findings
-        .iter()
-        .find(|f| f.effect == "order-too-low")
-        .expect("an order-too-low finding");
+    let (otl, why) = blocked_finding(r, "order-too-low");
     assert!(otl.explained >= 0.2, "{}", otl.explained);
-    let why = otl.blocked_by.as_deref().unwrap_or("");
     assert!(why.contains("refined the same way"), "{why}");
-    let explained: f64 = why
-        .split("this structure explains ")
-        .nth(1)
-        .and_then(|s| s.split_whitespace().next())
-        .and_then(|s| s.parse().ok())
-        .expect("what the refined order explains");
+    let explained = number_after(why, "this structure explains ");
     assert!(explained < 10.0, "{explained}");
     let cn = r.findings.iter().find(|f| f.effect == "coloured-noise");
     if let Some(cn) = cn {
@@ -101,12 +64,7 @@ fn a_biased_estimate_is_a_note_not_a_missing_state() {
         .iter()
         .find(|n| n.contains("refined by output error (lpvid pbsid --refine) explains"))
         .expect("the refined structure's note");
-    let explained: f64 = note
-        .split("explains ")
-        .nth(1)
-        .and_then(|s| s.split_whitespace().next())
-        .and_then(|s| s.parse().ok())
-        .expect("what the refined structure explains");
+    let explained = number_after(note, "explains ");
     assert!(explained > 90.0, "{explained}");
 }
 

@@ -5,7 +5,7 @@
 
 mod diagnose_support;
 
-use diagnose_support::family::{diagnose_one, run_one};
+use diagnose_support::family::{blocked_finding, diagnose_one, run_one};
 use lpvid_host::diagnose::memory::Basis;
 
 /// output-offset plant 3003 of the family (order 4, a random binary input, past window 15,
@@ -61,21 +61,7 @@ fn a_null_leaning_on_its_start_is_judged_from_the_zero_state() {
 #[test]
 fn a_basis_that_absorbs_the_subspace_bias_is_not_a_finding() {
     let (_, out) = diagnose_one("clean", 9003, 1500);
-    let r = &out.report;
-    for f in &r.findings {
-        println!(
-            "{} ({}) {:.3} {:?}",
-            f.effect, f.detail, f.explained, f.blocked_by
-        );
-    }
-    assert!(r.findings.iter().all(|f| !f.significant));
-    assert!(r.applied.is_empty());
-    let sn = r
-        .findings
-        .iter()
-        .find(|f| f.effect == "scheduling-nonlinearity")
-        .expect("a scheduling-nonlinearity finding");
-    let why = sn.blocked_by.as_deref().unwrap_or("");
+    let (sn, why) = blocked_finding(&out.report, "scheduling-nonlinearity");
     assert!(why.contains("refined by output error"), "{why}");
     // it explains most of the subspace refit's error and less than none of the refined one's
     assert!(sn.explained > 0.5, "{}", sn.explained);

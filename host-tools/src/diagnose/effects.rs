@@ -1538,6 +1538,39 @@ pub struct Encompassing {
     pub detail: String,
 }
 
+impl Encompassing {
+    /// The test's numbers in words, for the evidence: `simpler` and `richer` name the two
+    /// findings.
+    pub fn numbers(&self, simpler: &str, richer: &str) -> String {
+        format!(
+            "encompassing test of {simpler} and {richer}: the structure with both ({}) explains {:.1} % of {simpler}'s held-out error (p = {:.1e}) and {:.1} % of {richer}'s (p = {:.1e}); each comparison needs >= {:.0} % at p < {:.1e} (alpha / {} comparisons)",
+            self.detail,
+            100.0 * self.richer_adds.0,
+            self.richer_adds.1,
+            100.0 * self.simpler_adds.0,
+            self.simpler_adds.1,
+            100.0 * MIN_EXPLAINED,
+            self.level,
+            ENCOMPASSING_TESTS
+        )
+    }
+}
+
+/// What a finding must do better than a reference structure of the model's own, in words
+/// ([`beats_user`]): on a short record a lower held-out error, otherwise the evidence of a
+/// finding at the level of the `tried` variants.
+pub fn improvement_needed(tried: usize, short: bool) -> String {
+    if short {
+        "a finding must have a lower held-out error than it".to_string()
+    } else {
+        format!(
+            "a finding must improve on it by >= {:.0} % at p < {:.1e}",
+            100.0 * MIN_EXPLAINED,
+            ALPHA / tried.max(1) as f64
+        )
+    }
+}
+
 /// Comparisons the encompassing test makes: the comprehensive structure against each of the
 /// two findings. Each is tested at ALPHA / 2, so that the verdict's family-wise error is at
 /// most ALPHA (Bonferroni over the comparisons actually made). The existence of each finding
@@ -1736,17 +1769,7 @@ pub fn scheduling_pair_first(
         return;
     };
     let (sn, rn) = (simpler.cand.effect.name(), richer.cand.effect.name());
-    let numbers = format!(
-        "encompassing test of {sn} and {rn}: the structure with both ({}) explains {:.1} % of {sn}'s held-out error (p = {:.1e}) and {:.1} % of {rn}'s (p = {:.1e}); each comparison needs >= {:.0} % at p < {:.1e} (alpha / {} comparisons)",
-        e.detail,
-        100.0 * e.richer_adds.0,
-        e.richer_adds.1,
-        100.0 * e.simpler_adds.0,
-        e.simpler_adds.1,
-        100.0 * MIN_EXPLAINED,
-        e.level,
-        ENCOMPASSING_TESTS
-    );
+    let numbers = e.numbers(sn, rn);
     let named = match e.verdict {
         Encompassed::Richer => Some(richer.cand.effect),
         Encompassed::Simpler => Some(simpler.cand.effect),
@@ -2661,15 +2684,7 @@ pub fn states_check(
                     "the model's own structure refined by output error removes that error as well: refined the same way, this structure explains {:.1} % of its held-out error (p = {:.2e}; {}); what the larger order or past window removes is the bias of the subspace estimate of the model's own structure, not missing states",
                     100.0 * v.0,
                     v.1,
-                    if short {
-                        "a finding must have a lower held-out error than it".to_string()
-                    } else {
-                        format!(
-                            "a finding must improve on it by >= {:.0} % at p < {:.1e}",
-                            100.0 * MIN_EXPLAINED,
-                            ALPHA / tried.max(1) as f64
-                        )
-                    }
+                    improvement_needed(tried, short)
                 )
             };
             Some(StatesCheck { passes, text })

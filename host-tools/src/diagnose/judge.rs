@@ -97,23 +97,7 @@ pub(crate) fn judge(b: &Bench<'_>, notes: &mut Vec<String>) -> (Vec<Judgement>, 
     let best = effects::best_variants(scored, b.tried);
     let mut js: Vec<Judgement> = best
         .iter()
-        .map(|&(effect, index, variants)| Judgement {
-            effect,
-            index,
-            variants,
-            pooled: None,
-            full_data: false,
-            replication: None,
-            replication_basis: None,
-            swapped_from: None,
-            set_aside: None,
-            vs_user: None,
-            vs_larger: None,
-            vs_refined: None,
-            states: None,
-            memory: None,
-            passed: false,
-        })
+        .map(|&(effect, index, variants)| Judgement::new(effect, index, variants))
         .collect();
     // a short held-out record: blocked cross-validation over the record the diagnosis sees
     // (effects::cv_folds): the held-out batches pooled with those of the training folds in
@@ -282,21 +266,11 @@ fn second_chance(
             continue;
         }
         let mut alt = Judgement {
-            effect: j.effect,
-            index: i,
-            variants: j.variants,
-            pooled: None,
             full_data: true,
             replication: Some(r),
             replication_basis: Some(bases),
-            swapped_from: None,
             set_aside: Some((j.index, why.clone())),
-            vs_user: None,
-            vs_larger: None,
-            vs_refined: None,
-            states: None,
-            memory: None,
-            passed: false,
+            ..Judgement::new(j.effect, i, j.variants)
         };
         b.rules_beyond_full_data(&mut alt, false, refs);
         if alt.passed {
@@ -397,6 +371,27 @@ impl Bench<'_> {
 }
 
 impl Judgement {
+    /// Variant `index` of `effect` (one of its `variants`), before any rule is tested.
+    fn new(effect: Effect, index: usize, variants: usize) -> Judgement {
+        Judgement {
+            effect,
+            index,
+            variants,
+            pooled: None,
+            full_data: false,
+            replication: None,
+            replication_basis: None,
+            swapped_from: None,
+            set_aside: None,
+            vs_user: None,
+            vs_larger: None,
+            vs_refined: None,
+            states: None,
+            memory: None,
+            passed: false,
+        }
+    }
+
     /// The p-value of the full-data test (pooled with the folds on a short record).
     pub fn p(&self, scored: &[Scored]) -> f64 {
         self.pooled.map_or(scored[self.index].p_value, |x| x.1)
@@ -569,7 +564,6 @@ impl Judgement {
     /// did). The comparisons with the model's own structures are named before the
     /// replication, as they were tested on the full data.
     fn rule_failed(&self, b: &Bench<'_>, short: bool) -> Option<String> {
-        let p_max = b.level();
         let explained = b.scored[self.index].explained;
         let beaten = |v: Option<Versus>| b.beaten(v, short);
         Some(
@@ -585,14 +579,7 @@ impl Judgement {
                 b.larger.map_or("", |l| l.detail.as_str()),
                 100.0 * v.0,
                 v.1,
-                if short {
-                    "a finding must have a lower held-out error than it".to_string()
-                } else {
-                    format!(
-                        "a finding must improve on it by >= {:.0} % at p < {p_max:.1e}",
-                        100.0 * effects::MIN_EXPLAINED,
-                    )
-                }
+                effects::improvement_needed(b.tried, short)
             )
             } else if let Some(c) = self.states.as_ref().filter(|c| !c.passes) {
                 c.text.clone()

@@ -432,17 +432,7 @@ fn prefer_simpler_first(
         findings.insert(0, f);
         return;
     };
-    let numbers = format!(
-        "encompassing test of {sn} and {rn}: the structure with both ({}) explains {:.1} % of {sn}'s held-out error (p = {:.1e}) and {:.1} % of {rn}'s (p = {:.1e}); each comparison needs >= {:.0} % at p < {:.1e} (alpha / {} comparisons)",
-        e.detail,
-        100.0 * e.richer_adds.0,
-        e.richer_adds.1,
-        100.0 * e.simpler_adds.0,
-        e.simpler_adds.1,
-        100.0 * effects::MIN_EXPLAINED,
-        e.level,
-        effects::ENCOMPASSING_TESTS
-    );
+    let numbers = e.numbers(sn, rn);
     let better_is_simpler = effects::held_out_mse(s) < effects::held_out_mse(r);
     let (first, line) = match e.verdict {
         effects::Encompassed::Richer => (

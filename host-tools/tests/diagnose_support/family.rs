@@ -269,6 +269,38 @@ fn user_model(case: &FamilyCase) -> Result<ModelFile, String> {
     ModelFile::read(&mp).map_err(|e| e.to_string())
 }
 
+/// The finding of `effect` in a report that names nothing (every finding printed with the
+/// rule that blocked it; none significant, nothing applied), and that rule.
+pub fn blocked_finding<'r>(
+    report: &'r lpvid_host::diagnose::Report,
+    effect: &str,
+) -> (&'r lpvid_host::diagnose::effects::Finding, &'r str) {
+    for f in &report.findings {
+        println!(
+            "{} ({}) {:.3} {:?}",
+            f.effect, f.detail, f.explained, f.blocked_by
+        );
+    }
+    assert!(report.findings.iter().all(|f| !f.significant));
+    assert!(report.applied.is_empty());
+    let f = report
+        .findings
+        .iter()
+        .find(|f| f.effect == effect)
+        .unwrap_or_else(|| panic!("a {effect} finding"));
+    (f, f.blocked_by.as_deref().unwrap_or(""))
+}
+
+/// The number written right after `marker` in `text` (a p-value or a percentage in a
+/// finding's words).
+pub fn number_after(text: &str, marker: &str) -> f64 {
+    text.split(marker)
+        .nth(1)
+        .and_then(|s| s.split_whitespace().next())
+        .and_then(|s| s.trim_end_matches([',', ';', ')']).parse().ok())
+        .unwrap_or_else(|| panic!("a number after {marker:?} in {text}"))
+}
+
 /// Draw the plant of `effect` with `seed` (records of `n` samples), identify it with the
 /// user's `lpvid pbsid` options and diagnose it with `--fix` (one step): the user's model and
 /// the outcome, for tests that look into the report.
