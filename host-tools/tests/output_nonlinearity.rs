@@ -403,28 +403,50 @@ fn a_sin_channels_frequency_follows_the_data() {
     assert!(r.ratio >= 10.0, "{:.2}", r.ratio);
 }
 
-/// The encompassing test between `order-too-low` and `output-nonlinearity`
-/// (`effects::encompass_order`). On the physical pendulum 1017 (user's order 2, found by
-/// `LPVID_SEEDS=1000,8 LPVID_PLANT=Pendulum`) the own-output channel explains about 74 % of
-/// the refined null's held-out error and replicates, but the parsimony rule named the larger
-/// past window 10 (22.5 % of the PBSID null, 1.29x) because the richer structure did not beat
-/// it head to head at ALPHA / (variants tried). The structure with both (the channel at past
-/// window 10, refined) explains most of the past window's refined error and the past window
-/// adds nothing to the channel, so the channel is named and applied (measured 5.21x; its
-/// oracle, the true sin(y1) channel in the user's structure, 5.74x from the zero state).
+/// Order-too-low against output-nonlinearity on the physical pendulum 1017 (user's order 2,
+/// found by `LPVID_SEEDS=1000,8 LPVID_PLANT=Pendulum`). The own-output channel explains about
+/// 74 % of the refined null's held-out error and replicates, but the parsimony rule named the
+/// larger past window 10 (22.5 % of the PBSID null, 1.29x), as the richer structure did not
+/// beat it head to head at ALPHA / (variants tried). The encompassing test
+/// (`effects::encompass_order`: the channel at past window 10, refined, explains most of the
+/// past window's refined error, which adds nothing to the channel) then named the channel.
+/// Since the states check (`effects::states_check`, helper h21cn) the past window is judged
+/// against the user's structure refined, where it adds nothing (-0.0 %), so it is not a
+/// finding and the encompassing test is not reached: either way the channel is named and
+/// applied (measured 5.21x; its oracle, the true sin(y1) channel in the user's structure,
+/// 5.74x from the zero state).
 #[test]
 fn an_own_output_channel_that_adds_to_a_larger_past_window_is_named() {
     let (id, o, val, desc, _) = diagnosed(Plant::Pendulum, 1017);
+    for g in &o.report.findings {
+        println!(
+            "{} ({}) {} {:?}",
+            g.effect, g.detail, g.significant, g.blocked_by
+        );
+    }
     let f = &o.report.findings[0];
     assert_eq!(f.effect, "output-nonlinearity", "{desc}: {f:#?}");
     assert!(f.significant, "{desc}: {f:#?}");
-    let line = &f.evidence[0];
+    let encompassed = f.evidence[0]
+        .starts_with("encompassing test of order-too-low and output-nonlinearity")
+        && f.evidence[0].contains(
+            "output-nonlinearity adds to order-too-low and order-too-low adds nothing to it",
+        );
+    let order = o
+        .report
+        .findings
+        .iter()
+        .find(|g| g.effect == "order-too-low");
+    let refined_away = order.is_some_and(|g| {
+        !g.significant
+            && g.blocked_by
+                .as_deref()
+                .is_some_and(|b| b.contains("refined the same way"))
+    });
     assert!(
-        line.starts_with("encompassing test of order-too-low and output-nonlinearity")
-            && line.contains(
-                "output-nonlinearity adds to order-too-low and order-too-low adds nothing to it"
-            ),
-        "{line}"
+        encompassed || refined_away,
+        "{desc}: {:#?}",
+        o.report.findings
     );
     let ratio = mse(&id.model, &val) / mse(&o.model, &val);
     assert!(ratio >= 4.0, "{desc}: error ratio {ratio:.2}");
