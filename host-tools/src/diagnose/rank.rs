@@ -1,0 +1,184 @@
+//! Which finding comes first, the one `--fix` applies (issue 14; docs/diagnose-measured.md,
+//! "which finding comes first"): the findings that passed every rule of a finding
+//! ([`super::judge`]) ranked by their own held-out errors, then by parsimony with the
+//! encompassing test, then like with like (a refined finding against a PBSID-fitted one
+//! refined the same way), then the two scheduling effects by the encompassing test. Each rule
+//! that moves a finding writes its numbers first in that finding's evidence.
+
+use super::effects::{self, Finding, Scored};
+use super::fit_eval;
+use super::residual::ALPHA;
+use crate::data::Dataset;
+use crate::simulate::Mode;
+
+/// Rank the findings of one step: those above the threshold first, by the explained
+/// fraction, then the rules of the module docs in order. `tried`: the variants of the step;
+/// `train`, `val`, `base_fit`: what the comparisons refit with.
+pub(crate) fn rank(
+    findings: &mut Vec<(Finding, usize)>,
+    scored: &[Scored],
+    tried: usize,
+    (train, val, base_fit): (&Dataset, &Dataset, &serde_json::Value),
+) {
+    findings.sort_by(|a, b| {
+        b.0.significant
+            .cmp(&a.0.significant)
+            .then(b.0.explained.total_cmp(&a.0.explained))
+    });
+    rank_by_own_error(findings, scored);
+    prefer_simpler_first(findings, scored, tried, (train, val, base_fit));
+    let k = findings.iter().take_while(|f| f.0.significant).count();
+    like_with_like_first(&mut findings[..k], scored, tried, (train, val, base_fit));
+    // the two scheduling effects judged by the encompassing test also when parsimony did not
+    // reorder them (effects::scheduling_pair_first)
+    effects::scheduling_pair_first(&mut findings[..k], scored, train, val, base_fit);
+}
+
+/// The significant findings ranked on their own held-out errors ([`effects::rank_by_own_error`]),
+/// the rest kept in place.
+fn rank_by_own_error(findings: &mut [(Finding, usize)], scored: &[Scored]) {
+    let k = findings.iter().take_while(|f| f.0.significant).count();
+    let mut order: Vec<usize> = findings[..k].iter().map(|f| f.1).collect();
+    effects::rank_by_own_error(&mut order, scored);
+    findings[..k].sort_by_key(|f| order.iter().position(|&i| i == f.1));
+}
+
+/// Parsimony among the significant findings ([`effects::prefer_simpler`]): a simpler
+/// significant finding that the first one does not beat head to head is put first, with
+/// the reason in its evidence (first, so the human summary shows it), unless the
+/// encompassing test ([`effects::encompass`], for two findings whose structures combine: the
+/// two scheduling effects, and order-too-low with output-nonlinearity)
+/// finds that the first one adds to the simpler one and not the reverse (it stays first),
+/// or that both add (the one with the lower own held-out error first). Its numbers go in the
+/// first finding's evidence in every case.
+fn prefer_simpler_first(
+    findings: &mut Vec<(Finding, usize)>,
+    scored: &[Scored],
+    tried: usize,
+    (train, val, base_fit): (&Dataset, &Dataset, &serde_json::Value),
+) {
+    let order: Vec<usize> = findings
+        .iter()
+        .take_while(|f| f.0.significant)
+        .map(|f| f.1)
+        .collect();
+    let Some((k, why)) = effects::prefer_simpler(&order, scored, tried) else {
+        return;
+    };
+    let (s, r) = (&scored[order[k]], &scored[order[0]]);
+    let (sn, rn) = (s.cand.effect.name(), r.cand.effect.name());
+    let Some(e) = effects::encompass(s, r, scored, train, val, base_fit) else {
+        let mut f = findings.remove(k);
+        f.0.evidence.insert(0, why);
+        findings.insert(0, f);
+        return;
+    };
+    let numbers = e.numbers(sn, rn);
+    let better_is_simpler = effects::held_out_mse(s) < effects::held_out_mse(r);
+    let (first, line) = match e.verdict {
+        effects::Encompassed::Richer => (
+            0,
+            format!("{numbers}: {rn} adds to {sn} and {sn} adds nothing to it, so {rn} is the effect ({sn} would otherwise be first by parsimony: {why})"),
+        ),
+        effects::Encompassed::Simpler => (
+            k,
+            format!("{numbers}: {sn} adds to {rn} and {rn} adds nothing to it; {why}"),
+        ),
+        effects::Encompassed::Both => (
+            if better_is_simpler { k } else { 0 },
+            format!(
+                "{numbers}: each adds to the other, both effects are present; {} first (the lower held-out error), {} is the other effect",
+                if better_is_simpler { sn } else { rn },
+                if better_is_simpler { rn } else { sn }
+            ),
+        ),
+        effects::Encompassed::Neither => (
+            k,
+            format!("{numbers}: neither adds to the other, the data do not tell them apart; {why}"),
+        ),
+    };
+    let mut f = findings.remove(first);
+    f.0.evidence.insert(0, line);
+    findings.insert(0, f);
+}
+
+/// Own held-out errors compared like with like (issue 14). A variant fitted with the
+/// output-error refinement gains from the refinement as well as from its effect, so ranked
+/// first on its own error, or kept first by the parsimony rule's head-to-head test, it can
+/// hide a finding that was fitted by PBSID alone: on the family's output-offset plant 31002
+/// a Lur'e sqrt|y1| (36.8 % of the refined null, one coefficient fewer) came before the
+/// offset (88.4 % of the PBSID null). When the first significant free-run finding R is
+/// refined, each PBSID-fitted free-run finding U after it is refit with its structure
+/// refined the same way ([`effects::refined_null`]); U goes first when that refit's held-out
+/// error is not above R's and, if R has fewer free coefficients, it also beats R head to
+/// head (the parsimony rule's test, [`effects::versus`] at ALPHA / `tried`, now like with
+/// like). The U with the lowest such error is taken, with the numbers in its evidence. What is
+/// applied is still the finding as scored. Applied after [`prefer_simpler_first`].
+fn like_with_like_first(
+    findings: &mut [(Finding, usize)],
+    scored: &[Scored],
+    tried: usize,
+    (train, val, base_fit): (&Dataset, &Dataset, &serde_json::Value),
+) {
+    let Some(top) = findings.first().map(|f| &scored[f.1]) else {
+        return;
+    };
+    let free = |s: &Scored| s.cand.effect.metric() == Mode::FreeRun;
+    if !free(top) || !top.cand.spec.fitted_refined() {
+        return;
+    }
+    let Some(top_eval) = top.eval.as_ref() else {
+        return;
+    };
+    let count = |s: &Scored| {
+        s.fitted
+            .as_ref()
+            .map(|f| effects::parameter_count(&f.model, Mode::FreeRun))
+    };
+    let top_loss = top_eval.loss(Mode::FreeRun);
+    let top_mse = top_eval.mse(Mode::FreeRun);
+    let level = ALPHA / tried.max(1) as f64;
+    // (explained, p) of a head-to-head test
+    type HeadToHead = Option<(f64, f64)>;
+    // (position, refined error, head to head when R is simpler)
+    let mut best: Option<(usize, f64, HeadToHead)> = None;
+    for (j, (_, i)) in findings.iter().enumerate().skip(1) {
+        let s = &scored[*i];
+        if !free(s) || s.cand.spec.fitted_refined() || s.cand.spec.arx.is_some() {
+            continue;
+        }
+        let Some(e) = fit_eval(&effects::refined_null(&s.cand.spec), train, val, base_fit) else {
+            continue;
+        };
+        let mse = e.mse(Mode::FreeRun);
+        if !mse.is_finite() || mse > top_mse || best.is_some_and(|(_, b, _)| mse >= b) {
+            continue;
+        }
+        let h2h = match (count(top), count(s)) {
+            (Some(kr), Some(ku)) if kr < ku => {
+                let v = effects::versus(&top_loss, &e.loss(Mode::FreeRun));
+                if v.1 >= level {
+                    continue;
+                }
+                Some(v)
+            }
+            _ => None,
+        };
+        best = Some((j, mse, h2h));
+    }
+    let Some((j, mse, h2h)) = best else {
+        return;
+    };
+    let line = format!(
+        "ranked before {} ({}): fitted the same way, with the output-error refinement, its structure's held-out error is {mse:.3e} against {top_mse:.3e}{}; the lower error of that finding than this one's as fitted ({:.3e}) came from the refinement, not from its effect",
+        top.cand.effect.name(),
+        top.cand.detail,
+        h2h.map_or(String::new(), |(x, p)| format!(
+            " (head to head, as that structure has fewer free coefficients: explains {:.1} % of its error, p = {p:.1e} < {level:.1e})",
+            100.0 * x
+        )),
+        effects::held_out_mse(&scored[findings[j].1])
+    );
+    findings[..=j].rotate_right(1);
+    findings[0].0.evidence.insert(0, line);
+}
