@@ -1635,8 +1635,7 @@ fn encompass_as_fitted(
 ) -> Option<Encompassing> {
     let mode = Mode::FreeRun;
     let loss = |spec: &Spec| -> Option<Vec<f64>> {
-        let f = fit_spec(spec, train, base_fit).ok()?;
-        Some(Eval::new(&f.model, val).ok()?.loss(mode))
+        Some(super::fit_eval(spec, train, val, base_fit)?.loss(mode))
     };
     let u_s = union_spec(&simpler.cand.spec, &richer.cand.spec)?;
     let l_us = loss(&u_s)?;
@@ -1705,8 +1704,7 @@ fn encompass_refined(
         return None;
     }
     let u = union_spec(&s_r.cand.spec, &r_r.cand.spec)?;
-    let f = fit_spec(&u, train, base_fit).ok()?;
-    let l_u = Eval::new(&f.model, val).ok()?.loss(mode);
+    let l_u = super::fit_eval(&u, train, val, base_fit)?.loss(mode);
     let richer_adds = versus(&s_r.eval.as_ref()?.loss(mode), &l_u);
     let simpler_adds = versus(&r_r.eval.as_ref()?.loss(mode), &l_u);
     Some(Encompassing {
@@ -1913,8 +1911,7 @@ fn encompass_order(
     };
     let (u, ord_refined) = order_union_spec(&ord.cand.spec, &own.cand.spec)?;
     let loss = |spec: &Spec| -> Option<Vec<f64>> {
-        let f = fit_spec(spec, train, base_fit).ok()?;
-        Some(Eval::new(&f.model, val).ok()?.loss(mode))
+        Some(super::fit_eval(spec, train, val, base_fit)?.loss(mode))
     };
     let l_own = own.eval.as_ref()?.loss(mode);
     // a compound own-output variant already at the larger structure is the union itself
