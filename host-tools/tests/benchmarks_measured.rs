@@ -177,7 +177,7 @@ fn emps() {
 }
 
 /// Cascaded tanks (estimation file -> validation file): the 205 held-out rows are a short
-/// record, cross-validated in 5 blocks (`diagnose::effects::cv_folds`); the tanks' level
+/// record, cross-validated in 5 blocks (`diagnose::replicate::cv_folds`); the tanks' level
 /// dependence is found as a Lur'e feedback sin(omega y1) and, after the selection, the chosen
 /// structure is refit on all 1024 estimation rows (`diagnose::refit_on_all`), with the
 /// output-error refinement run until it stalls (`refine::stalled`) rather than cut at 60

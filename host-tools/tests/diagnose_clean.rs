@@ -2,7 +2,7 @@
 //! keep them clean (issue 14, helper h21cn; docs/bench-diagnose.md, "coloured-noise and
 //! order-too-low against the structure refined"): a `coloured-noise` finding needs a
 //! refined free-run residual that is not white, an `order-too-low` finding its structure
-//! refined beating the model's structure refined (`effects::states_check`). Run in release
+//! refined beating the model's structure refined (`states::states_check`). Run in release
 //! mode.
 
 mod diagnose_support;

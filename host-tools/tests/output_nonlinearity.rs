@@ -345,7 +345,7 @@ fn output_nonlinearity_on_random_plant_families() {
     // measured on these seeds: 7 of 9 (Duffing 3/3, tank 3/3, pendulum 1/3). Duffing seed 2
     // was missed (6 of 9) while diagnose replicated only the effect's best variant, the
     // quasi-LPV scheduling on y^2, whose refits on the training halves do not hold up; its
-    // next variants are now replicated in its place (effects::MAX_ALTERNATIVES). The
+    // next variants are now replicated in its place (replicate::MAX_ALTERNATIVES). The
     // pendulum's sin is close to linear at small angles and noise hides it at larger ones
     // (seeds 12, 13: nothing found, nothing applied).
     assert!(named * 3 >= total * 2, "{text}");
@@ -408,9 +408,9 @@ fn a_sin_channels_frequency_follows_the_data() {
 /// 74 % of the refined null's held-out error and replicates, but the parsimony rule named the
 /// larger past window 10 (22.5 % of the PBSID null, 1.29x), as the richer structure did not
 /// beat it head to head at ALPHA / (variants tried). The encompassing test
-/// (`effects::encompass_order`: the channel at past window 10, refined, explains most of the
+/// (`encompass::encompass_order`: the channel at past window 10, refined, explains most of the
 /// past window's refined error, which adds nothing to the channel) then named the channel.
-/// Since the states check (`effects::states_check`, helper h21cn) the past window is judged
+/// Since the states check (`states::states_check`, helper h21cn) the past window is judged
 /// against the user's structure refined, where it adds nothing (-0.0 %), so it is not a
 /// finding and the encompassing test is not reached: either way the channel is named and
 /// applied (measured 5.21x; its oracle, the true sin(y1) channel in the user's structure,

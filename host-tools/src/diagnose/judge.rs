@@ -2,16 +2,16 @@
 //! Each effect is represented by its best significant variant ([`effects::best_variants`]).
 //! Before it is a finding, that variant must pass, in this order: the full-data test
 //! ([`effects::significant`]; on a short record pooled with the cross-validation folds), the
-//! replication (each half of the training data, [`effects::replicated`], or the folds'
-//! agreement, [`effects::cv_agree`]), the refit of the model's own structure when it has a
+//! replication (each half of the training data, [`replicate::replicated`], or the folds'
+//! agreement, [`replicate::cv_agree`]), the refit of the model's own structure when it has a
 //! null of its own ([`effects::beats_user`]), that structure with a larger past window
 //! ([`effects::larger_past`]; not for order-too-low, which is that structure), that structure
 //! refined by output error (the scheduling effects, [`effects::needs_refined_null`];
-//! coloured-noise and order-too-low by [`effects::states_check`]) and the memory rule
+//! coloured-noise and order-too-low by [`states::states_check`]) and the memory rule
 //! ([`memory::forgets_as_null`]). A rule is tested only on a variant that passed the ones
 //! before it. An effect is a finding when one of its variants passes every rule: a best
 //! variant that does not replicate, or replicates and fails a later rule, gives way to the
-//! effect's next variants ([`effects::alternatives`]). [`Judgement`] keeps what each rule
+//! effect's next variants ([`replicate::alternatives`]). [`Judgement`] keeps what each rule
 //! found: the evidence of a finding, and the one rule named when it is blocked.
 
 use std::cell::OnceCell;
@@ -20,6 +20,7 @@ use super::effects::{self, evidence, Candidate, Effect, Eval, Finding, Scored};
 use super::memory::{self, Basis, Memory};
 use super::refit::{Fitted, Spec};
 use super::residual::{ResidualReport, ALPHA};
+use super::{encompass, replicate, states};
 use super::{fit_eval, mean_vaf, mode_name};
 use crate::data::Dataset;
 use crate::simulate::Mode;
@@ -81,8 +82,8 @@ pub(crate) struct Judgement {
     /// Against the model's structure refined by output error.
     pub vs_refined: Option<Versus>,
     /// A coloured-noise or order-too-low variant against that structure refined
-    /// ([`effects::states_check`]).
-    pub states: Option<effects::StatesCheck>,
+    /// ([`states::states_check`]).
+    pub states: Option<states::StatesCheck>,
     /// How much its free run leans on its estimated start.
     pub memory: Option<Memory>,
     /// Every rule passed.
@@ -91,7 +92,7 @@ pub(crate) struct Judgement {
 
 /// Judge every effect's best variant of one step by the rules of a finding (module docs).
 /// Returns the judgements, one per effect with a significant variant, and whether the record
-/// was judged as a short one (blocked cross-validation, [`effects::short_record`]).
+/// was judged as a short one (blocked cross-validation, [`replicate::short_record`]).
 pub(crate) fn judge(b: &Bench<'_>, notes: &mut Vec<String>) -> (Vec<Judgement>, bool) {
     let scored = b.scored;
     let best = effects::best_variants(scored, b.tried);
@@ -100,14 +101,14 @@ pub(crate) fn judge(b: &Bench<'_>, notes: &mut Vec<String>) -> (Vec<Judgement>, 
         .map(|&(effect, index, variants)| Judgement::new(effect, index, variants))
         .collect();
     // a short held-out record: blocked cross-validation over the record the diagnosis sees
-    // (effects::cv_folds): the held-out batches pooled with those of the training folds in
+    // (replicate::cv_folds): the held-out batches pooled with those of the training folds in
     // one test, and the folds' agreement is the replication
     let could = |j: &Judgement| {
         let s = &scored[j.index];
         s.error.is_none() && s.explained >= effects::MIN_EXPLAINED
     };
     let short =
-        effects::short_record(b.base_eval.loss(Mode::FreeRun).len()) && js.iter().any(could);
+        replicate::short_record(b.base_eval.loss(Mode::FreeRun).len()) && js.iter().any(could);
     if short {
         cross_validate(b, &mut js, could, notes);
     }
@@ -140,7 +141,7 @@ pub(crate) fn judge(b: &Bench<'_>, notes: &mut Vec<String>) -> (Vec<Judgement>, 
         .refined
         .get()
         .and_then(Option::as_ref)
-        .and_then(|r| effects::refined_note(b.base_eval, r, b.tried))
+        .and_then(|r| states::refined_note(b.base_eval, r, b.tried))
     {
         notes.push(n);
     }
@@ -148,14 +149,14 @@ pub(crate) fn judge(b: &Bench<'_>, notes: &mut Vec<String>) -> (Vec<Judgement>, 
 }
 
 /// A short record's test: each variant that could be a finding refit on the cross-validation
-/// folds ([`effects::cross_fold`]), its held-out batches pooled with theirs.
+/// folds ([`replicate::cross_fold`]), its held-out batches pooled with theirs.
 fn cross_validate(
     b: &Bench<'_>,
     js: &mut [Judgement],
     could: impl Fn(&Judgement) -> bool,
     notes: &mut Vec<String>,
 ) {
-    let folds = effects::cv_folds(b.train, b.val);
+    let folds = replicate::cv_folds(b.train, b.val);
     let nulls: Option<Vec<Eval>> = folds
         .iter()
         .map(|(fit_on, score_on)| fit_eval(b.spec, fit_on, score_on, b.fit))
@@ -166,16 +167,16 @@ fn cross_validate(
     };
     for j in js.iter_mut().filter(|j| could(j)) {
         let s = &b.scored[j.index];
-        let f = effects::cross_fold(&s.cand, &folds, &nulls, b.fit);
-        j.pooled = Some(effects::pooled_p(&s.ratios, &f));
+        let f = replicate::cross_fold(&s.cand, &folds, &nulls, b.fit);
+        j.pooled = Some(replicate::pooled_p(&s.ratios, &f));
         j.replication = Some(f.iter().map(|x| (x.explained, x.p_value)).collect());
     }
 }
 
 /// The replication of each variant significant on the full data: refit on each half of the
-/// training data ([`effects::replicate`]). When the effect's best variant does not hold up,
+/// training data ([`replicate::replicate`]). When the effect's best variant does not hold up,
 /// its next variants that pass every full-data test of a finding take its place, lowest
-/// held-out error first ([`effects::alternatives`]): on the plant family a quasi-LPV y^2 /
+/// held-out error first ([`replicate::alternatives`]): on the plant family a quasi-LPV y^2 /
 /// |y| variant or a refined p^2 had the lowest error and its refit on a half diverged, while
 /// another variant of the same effect replicated. Each alternative with its own null must
 /// also beat the model's structure refit (on the planted output-offset plant,
@@ -186,7 +187,7 @@ fn replicate_on_halves(
     js: &mut [Judgement],
     notes: &mut Vec<String>,
 ) -> Option<Halves> {
-    let halves = effects::halves(b.train);
+    let halves = replicate::halves(b.train);
     let nulls: Option<Vec<Eval>> = halves
         .iter()
         .map(|h| fit_eval(b.spec, h, b.val, b.fit))
@@ -195,15 +196,15 @@ fn replicate_on_halves(
         notes.push("the null structure cannot be refit on half of the training data: findings are not replicated on independent halves".into());
         return None;
     };
-    let rep = |i: usize| effects::replicate(&b.scored[i].cand, &halves, &nulls, b.val, b.fit);
+    let rep = |i: usize| replicate::replicate(&b.scored[i].cand, &halves, &nulls, b.val, b.fit);
     for j in js.iter_mut().filter(|j| j.full_data) {
         let (mut r, mut bases) = rep(j.index);
-        if !effects::replicated(&r) {
+        if !replicate::replicated(&r) {
             let alts =
-                effects::alternatives(b.scored, j.index, b.tried, b.base_eval, b.larger_eval);
+                replicate::alternatives(b.scored, j.index, b.tried, b.base_eval, b.larger_eval);
             for i in alts {
                 let (r2, b2) = rep(i);
-                if effects::replicated(&r2) {
+                if replicate::replicated(&r2) {
                     j.swapped_from = Some((j.index, r));
                     j.index = i;
                     r = r2;
@@ -243,8 +244,8 @@ struct References {
 
 /// A second chance for an effect whose judged variant replicated but failed a later rule
 /// (the larger past window, the refined structure, the memory rule): the effect's next
-/// variants ([`effects::alternatives`], lowest held-out error first, at most
-/// [`effects::MAX_ALTERNATIVES`]) go through the replication and every rule, and the first
+/// variants ([`replicate::alternatives`], lowest held-out error first, at most
+/// [`replicate::MAX_ALTERNATIVES`]) go through the replication and every rule, and the first
 /// that passes them all represents the effect. An effect is a finding when one of its
 /// variants passes every rule, as with a variant that did not replicate (the swap of
 /// [`replicate_on_halves`]); each variant was already counted in the level of the full-data
@@ -259,10 +260,10 @@ fn second_chance(
 ) -> Option<Judgement> {
     let why = j.rule_failed(b, false)?;
     let first = j.swapped_from.as_ref().map_or(j.index, |s| s.0);
-    let alts = effects::alternatives(b.scored, first, b.tried, b.base_eval, b.larger_eval);
+    let alts = replicate::alternatives(b.scored, first, b.tried, b.base_eval, b.larger_eval);
     for i in alts.into_iter().filter(|&i| i != j.index) {
-        let (r, bases) = effects::replicate(&b.scored[i].cand, halves, nulls, b.val, b.fit);
-        if !effects::replicated(&r) {
+        let (r, bases) = replicate::replicate(&b.scored[i].cand, halves, nulls, b.val, b.fit);
+        if !replicate::replicated(&r) {
             continue;
         }
         let mut alt = Judgement {
@@ -338,11 +339,11 @@ impl Bench<'_> {
             return;
         }
         // coloured-noise and order-too-low against that structure refined
-        // (effects::states_check: a white refined residual; the order refined like with like)
-        if effects::needs_states_check(s) {
+        // (states::states_check: a white refined residual; the order refined like with like)
+        if states::needs_states_check(s) {
             j.states = refs.refined(self).and_then(|r| {
                 let refit = |sp: &Spec| fit_eval(sp, self.train, self.val, self.fit);
-                effects::states_check(s, r, refit, self.tried, short)
+                states::states_check(s, r, refit, self.tried, short)
             });
         }
         if !j.states.as_ref().is_none_or(|c| c.passes) {
@@ -527,9 +528,9 @@ impl Judgement {
         let explained = b.scored[self.index].explained;
         self.replication.as_ref().is_none_or(|r| {
             if short {
-                effects::cv_agree(explained, r)
+                replicate::cv_agree(explained, r)
             } else {
-                effects::replicated(r)
+                replicate::replicated(r)
             }
         })
     }
@@ -579,7 +580,7 @@ impl Judgement {
                 b.larger.map_or("", |l| l.detail.as_str()),
                 100.0 * v.0,
                 v.1,
-                effects::improvement_needed(b.tried, short)
+                encompass::improvement_needed(b.tried, short)
             )
             } else if let Some(c) = self.states.as_ref().filter(|c| !c.passes) {
                 c.text.clone()
@@ -610,7 +611,7 @@ impl Judgement {
                     "it is not replicated on the two halves of the training data (explains {}, p = {}; each half needs explained > 0 and p < {})",
                     r.iter().map(|x| format!("{:.1} %", 100.0 * x.0)).collect::<Vec<_>>().join(" and "),
                     r.iter().map(|x| format!("{:.1e}", x.1)).collect::<Vec<_>>().join(", "),
-                    effects::REPLICATION_ALPHA
+                    replicate::REPLICATION_ALPHA
                 )
                 }
             } else {

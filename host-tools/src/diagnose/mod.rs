@@ -17,6 +17,7 @@
 //! diagnosis).
 
 pub mod effects;
+pub mod encompass;
 mod judge;
 pub mod memory;
 pub mod output;
@@ -24,8 +25,10 @@ pub mod plants;
 pub mod plots;
 mod rank;
 pub mod refit;
+pub mod replicate;
 pub mod report;
 pub mod residual;
+pub mod states;
 pub mod stats;
 
 use serde::Serialize;
@@ -757,7 +760,7 @@ pub fn refit_on_all(
     if outcome.report.applied.is_empty() {
         return Ok(());
     }
-    let all = effects::concat(&[train, val], format!("{} + {}", train.source, val.source))
+    let all = replicate::concat(&[train, val], format!("{} + {}", train.source, val.source))
         .ok_or_else(|| {
             DataError::new(
                 val.source.clone(),

@@ -327,7 +327,7 @@ mod tests {
     }
 
     /// The comprehensive structure of an order-too-low variant and a Lur'e variant
-    /// (`effects::order_union_spec`): the Lur'e channel with the larger windows and the fixed
+    /// (`encompass::order_union_spec`): the Lur'e channel with the larger windows and the fixed
     /// order, and the order structure refined; nothing for two structures it cannot combine.
     #[test]
     fn the_union_of_a_larger_structure_and_a_lure_channel() {
@@ -339,24 +339,24 @@ mod tests {
         let mut order = user.clone();
         order.opts.order = crate::pbsid::Order::Fixed(3);
         order.opts.future = Some(2);
-        let (u, s) = super::super::effects::order_union_spec(&past, &lure).expect("combines");
+        let (u, s) = super::super::encompass::order_union_spec(&past, &lure).expect("combines");
         assert_eq!(u.signals, lure.signals);
         assert_eq!((u.opts.past, u.opts.future), (10, None));
         assert_eq!(u.opts.order, crate::pbsid::Order::Auto);
         assert!(s.refined && s.signals == user.signals && s.opts.past == 10);
-        let (u, _) = super::super::effects::order_union_spec(&order, &lure).expect("combines");
+        let (u, _) = super::super::encompass::order_union_spec(&order, &lure).expect("combines");
         assert_eq!(u.opts.order, crate::pbsid::Order::Fixed(3));
         // the larger future window of the two: the Lur'e variant's (None = its past, 8)
         assert_eq!((u.opts.past, u.opts.future), (8, Some(8)));
         // not the order structure plus own-output channels: an ordinary input, or nothing added
         let mut other = user.clone();
         other.signals.inputs.push(vec![Factor::col("u2")]);
-        assert!(super::super::effects::order_union_spec(&past, &other).is_none());
-        assert!(super::super::effects::order_union_spec(&past, &user).is_none());
+        assert!(super::super::encompass::order_union_spec(&past, &other).is_none());
+        assert!(super::super::encompass::order_union_spec(&past, &user).is_none());
         // a noise model is not combined
         let mut noisy = lure.clone();
         noisy.noise = Noise::Innovation;
-        assert!(super::super::effects::order_union_spec(&past, &noisy).is_none());
+        assert!(super::super::encompass::order_union_spec(&past, &noisy).is_none());
     }
 
     #[test]
