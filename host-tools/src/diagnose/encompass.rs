@@ -4,9 +4,10 @@
 //! fitted and each finding is asked whether it adds to the other, with the batch log-ratio
 //! test of a finding ([`super::effects::versus`]) at ALPHA / 2.
 
+use super::catalogue::{regressors, MAX_REGRESSORS};
 use super::effects::{
-    held_out_mse, parameter_count, refined_null, regressors, significant, versus, Candidate,
-    Effect, Finding, Scored, MAX_REGRESSORS, MIN_EXPLAINED,
+    held_out_mse, parameter_count, refined_null, significant, versus, Candidate, Effect, Finding,
+    Scored, MIN_EXPLAINED,
 };
 use super::refit::{Noise, Spec};
 use super::residual::ALPHA;

@@ -16,6 +16,7 @@
 //! (SVG), [`plants`] (random plant families with one planted effect, for measuring the
 //! diagnosis).
 
+pub mod catalogue;
 pub mod effects;
 pub mod encompass;
 mod judge;
@@ -37,7 +38,8 @@ use crate::data::{DataError, Dataset};
 use crate::model::ModelFile;
 use crate::simulate::{score_from, Mode, Score, X0};
 
-use effects::{candidates, Context, Effect, Eval, Finding, Scored};
+use catalogue::{candidates, Context};
+use effects::{Effect, Eval, Finding, Scored};
 use refit::{fit_spec, Fitted, Spec};
 
 pub use refit::RefitError;

@@ -16,7 +16,8 @@
 
 use serde_json::{json, Map, Value};
 
-use super::effects::{Context, Scored};
+use super::catalogue::Context;
+use super::effects::Scored;
 use super::refit::{Fitted, Noise, RefitError, Spec};
 use crate::data::Dataset;
 use crate::error::Error;

@@ -36,7 +36,7 @@ pub fn model_summary(m: &ModelFile) -> String {
 /// The "not applicable" note of a catalogue variant that was not tried (the report's and the
 /// JSON's `not_applicable` entry): "past window 9 (was 7), order 2: not tried, its PBSID
 /// regression would have 4000 regressors".
-pub fn not_tried(s: &super::effects::Skipped) -> String {
+pub fn not_tried(s: &super::catalogue::Skipped) -> String {
     format!(
         "{}: not tried, its PBSID regression would have {} regressors",
         s.cand.detail, s.regressors

@@ -69,7 +69,7 @@ pub fn identifiable(explained: f64, p_value: f64) -> bool {
 }
 
 /// The oracle's structure: the user's [`Spec`] with the planted effect's true structure, the
-/// way the catalogue of `diagnose::effects::candidates` writes that idea (an input channel, a
+/// way the catalogue of `diagnose::catalogue::candidates` writes that idea (an input channel, a
 /// scheduling basis function, a flag of [`Spec`]), with the true parameter where the catalogue
 /// searches one (the delay, the frequency, the order, the shape and scale of the feedback).
 /// `input-nonlinearity` of the tanh kind has no exact factor: its leading odd term u^3 and

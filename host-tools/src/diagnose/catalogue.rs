@@ -1,0 +1,951 @@
+//! The catalogue of candidate missing effects (DESIGN.md section 6; issue 14): for each
+//! effect, the variants of the model's structure with the effect added, written with the
+//! model file's own machinery (an extra input channel, a scheduling basis function, a factor
+//! with a delay, sin/cos of time, a larger order, an output equation with C^(i), a noise
+//! model, the BC-IV path). One method of [`Catalogue`] per effect, in the order the report
+//! lists them; how the variants are scored is in [`super::effects`].
+
+use nalgebra::DMatrix;
+
+use super::effects::{refined_null, Candidate, Effect};
+use super::refit::{ArxSpec, Fitted, Noise, Spec};
+use super::residual::column_roles;
+use crate::data::Dataset;
+use crate::model::{describe, Factor, FactorFn, SignalMap};
+use crate::pbsid::Order;
+
+/// Largest input delay tried (samples).
+pub const MAX_DELAY: usize = 8;
+
+fn plain(prod: &[Factor]) -> Option<&Factor> {
+    match prod {
+        [f] if f.pow == 1.0 && f.func.is_none() => Some(f),
+        _ => None,
+    }
+}
+
+fn fac(col: &str, pow: i32, delay: usize, func: Option<FactorFn>) -> Factor {
+    Factor {
+        col: col.to_owned(),
+        pow: f64::from(pow),
+        delay,
+        func,
+        omega: None,
+        smooth: None,
+    }
+}
+
+/// Sample time of a strictly increasing, nearly uniform `t` column, if the data has one.
+fn sample_time(ds: &Dataset) -> Option<f64> {
+    let t = ds.column("t")?;
+    if t.len() < 3 {
+        return None;
+    }
+    let mut d: Vec<f64> = t.windows(2).map(|w| w[1] - w[0]).collect();
+    if d.iter().any(|v| *v <= 0.0) {
+        return None;
+    }
+    d.sort_by(f64::total_cmp);
+    let ts = d[d.len() / 2];
+    (d[0] > 0.9 * ts && d[d.len() - 1] < 1.1 * ts).then_some(ts)
+}
+
+/// Standard deviation of the white-noise floor of a signal: the median of its periodogram
+/// over the upper half band (omega in [pi/2, pi]) / ln 2 (periodogram ordinates of white noise
+/// of variance s^2 are s^2 Exp(1)). For a slowly varying signal measured with a white-noise
+/// sensor this is the sensor noise; a fast-varying true signal makes it an upper bound.
+pub fn noise_floor(x: &[f64]) -> f64 {
+    let (w, p) = super::stats::periodogram(x, 1);
+    let mut hi: Vec<f64> = w
+        .iter()
+        .zip(&p)
+        .filter(|(w, _)| **w >= std::f64::consts::FRAC_PI_2)
+        .map(|(_, p)| *p)
+        .collect();
+    if hi.is_empty() {
+        return 0.0;
+    }
+    hi.sort_by(f64::total_cmp);
+    (hi[hi.len() / 2] / std::f64::consts::LN_2).sqrt()
+}
+
+/// Whether the column `c` takes at most `k` distinct values (exact comparison: the values as
+/// read from the data file).
+fn at_most_levels(c: &[f64], k: usize) -> bool {
+    let mut levels: Vec<f64> = Vec::with_capacity(k + 1);
+    for &v in c {
+        if !levels.contains(&v) {
+            if levels.len() == k {
+                return false;
+            }
+            levels.push(v);
+        }
+    }
+    true
+}
+
+/// Everything the candidate generator looks at.
+pub struct Context<'a> {
+    /// The structure of the current model.
+    pub spec: &'a Spec,
+    /// The null refit.
+    pub base: &'a Fitted,
+    /// Training data.
+    pub train: &'a Dataset,
+    /// Validation data.
+    pub val: &'a Dataset,
+    /// Free-run residual of the null refit on the TRAINING data (designs frequencies).
+    pub train_residual: &'a DMatrix<f64>,
+}
+
+/// A catalogue variant that was generated but not tried: its PBSID regression would have
+/// more regressors than the catalogue's limit ([`MAX_REGRESSORS`], twice the model's own, or
+/// the kernel form's window limit for the scheduling effects). It is data (the variant and its
+/// regressor count); the report words it ([`super::report::not_tried`]).
+#[derive(Debug, Clone)]
+pub struct Skipped {
+    /// The variant that was not tried (its effect, detail and structure; `null` unset).
+    pub cand: Candidate,
+    /// Regressors its PBSID regression would have had.
+    pub regressors: usize,
+}
+
+/// All variants of every applicable effect, the effects that do not apply (with why), and the
+/// variants generated but not tried ([`Skipped`]).
+pub fn candidates(ctx: &Context<'_>) -> (Vec<Candidate>, Vec<(Effect, String)>, Vec<Skipped>) {
+    let mut c = Catalogue {
+        ctx,
+        q_base: regressors(ctx.spec),
+        out: Vec::new(),
+        na: Vec::new(),
+        skipped: Vec::new(),
+    };
+    if ctx.spec.arx.is_some() {
+        for e in Effect::ALL {
+            c.na.push((
+                e,
+                "candidate refits are implemented for lpv-ss models; this is an lpv-arx model"
+                    .into(),
+            ));
+        }
+        return (c.out, c.na, c.skipped);
+    }
+    c.output_offset();
+    c.feedthrough();
+    c.scheduled_output();
+    c.scheduling_nonlinearity();
+    c.input_nonlinearity();
+    c.input_delay();
+    c.scheduling_noise();
+    c.periodic_disturbance();
+    c.order_too_low();
+    c.coloured_noise();
+    c.unused_signal();
+    c.output_nonlinearity();
+    (c.out, c.na, c.skipped)
+}
+
+/// The variants generated so far for one model ([`candidates`]).
+struct Catalogue<'c, 'a> {
+    ctx: &'c Context<'a>,
+    /// Regressors of the model's own PBSID regression.
+    q_base: usize,
+    out: Vec<Candidate>,
+    na: Vec<(Effect, String)>,
+    skipped: Vec<Skipped>,
+}
+
+impl Catalogue<'_, '_> {
+    /// Add a variant: skipped when its regression is too long ([`MAX_REGRESSORS`], twice the
+    /// model's own; the scheduling effects in the kernel form up to [`MAX_KERNEL_WINDOWS`]
+    /// windows), else with the null it is judged against ([`Candidate::null`]).
+    fn push(&mut self, effect: Effect, detail: String, spec: Spec) {
+        let q = regressors(&spec);
+        let windows = self.ctx.train.len().saturating_sub(spec.opts.past);
+        let scheduling_effect = matches!(
+            effect,
+            Effect::ScheduledOutput | Effect::SchedulingNonlinearity
+        );
+        if q > MAX_REGRESSORS.max(2 * self.q_base)
+            && !(scheduling_effect && windows <= MAX_KERNEL_WINDOWS)
+        {
+            self.skipped.push(Skipped {
+                cand: Candidate {
+                    effect,
+                    detail,
+                    spec,
+                    null: None,
+                },
+                regressors: q,
+            });
+            return;
+        }
+        let null = (effect == Effect::SchedulingNoise)
+            .then(|| {
+                spec.arx.as_ref().map(|a| {
+                    let mut n = spec.clone();
+                    n.arx = Some(ArxSpec {
+                        sigma: Some((0.0, vec![])),
+                        ..a.clone()
+                    });
+                    n
+                })
+            })
+            .flatten()
+            .or_else(|| {
+                // an own-output candidate is fitted with the output-error refinement: its null
+                // is the model's structure fitted the same way (diagnose/output.rs)
+                (effect == Effect::OutputNonlinearity).then(|| refined_null(self.ctx.spec))
+            })
+            // a structure refined from the refined fit of the model's own structure
+            // (refit::fit_nested) is judged against that refined structure
+            .or_else(|| spec.nested_in.as_deref().cloned());
+        let mut spec = spec;
+        if q > MAX_REGRESSORS.max(2 * self.q_base)
+            && matches!(
+                effect,
+                Effect::ScheduledOutput | Effect::SchedulingNonlinearity
+            )
+        {
+            // a richer scheduling basis is always tried: in the kernel form its cost does not
+            // grow with the regressor length (same regularisation, same windows)
+            spec.opts.solver = crate::pbsid::Solver::Dual;
+        }
+        self.out.push(Candidate {
+            effect,
+            detail,
+            spec,
+            null,
+        })
+    }
+
+    /// output-offset: a constant input channel.
+    fn output_offset(&mut self) {
+        let ctx = self.ctx;
+        let spec = ctx.spec;
+        let map = &spec.signals;
+        if map.inputs.iter().any(Vec::is_empty) {
+            self.na.push((
+                Effect::OutputOffset,
+                "the model already has a constant input channel".into(),
+            ));
+        } else {
+            let mut sp = spec.clone();
+            sp.signals.inputs.push(vec![]);
+            self.push(
+                Effect::OutputOffset,
+                "a constant input channel [] (an offset through B^(i) and D)".into(),
+                sp,
+            );
+        }
+    }
+    /// feedthrough: the D matrix estimated.
+    fn feedthrough(&mut self) {
+        let ctx = self.ctx;
+        let spec = ctx.spec;
+        if spec.opts.feedthrough {
+            self.na
+                .push((Effect::Feedthrough, "the model already estimates D".into()));
+        } else {
+            let mut sp = spec.clone();
+            sp.opts.feedthrough = true;
+            self.push(Effect::Feedthrough, "estimate the feedthrough D".into(), sp);
+        }
+    }
+    /// scheduled-output: C^(i), D^(i), fitted by PBSID and nested in the refined structure.
+    fn scheduled_output(&mut self) {
+        let ctx = self.ctx;
+        let spec = ctx.spec;
+        let map = &spec.signals;
+        let s = map.m() - 1;
+        if s == 0 {
+            self.na.push((
+                Effect::ScheduledOutput,
+                "the model has no scheduling signal".into(),
+            ));
+        } else if spec.scheduled_output {
+            self.na.push((
+                Effect::ScheduledOutput,
+                "the output equation is already scheduled".into(),
+            ));
+        } else {
+            let mut sp = spec.clone();
+            sp.scheduled_output = true;
+            self.push(
+                Effect::ScheduledOutput,
+                "an output equation with C^(i), D^(i) (y = sum_i mu^(i) (C^(i) x + D^(i) u))"
+                    .into(),
+                sp,
+            );
+            // nested in the model's structure, refined: the model's own structure refined
+            // (output error), C^(i), D^(i) added at zero and the whole refined again
+            // (refit::fit_nested); judged against that refined structure, so the refinement's own
+            // gain is not credited to the output equation. It replaces C^(i), D^(i) by least
+            // squares on the states of the null's unrefined A(mu), B(mu) (refit::scheduled_output_ls),
+            // which kept their bias: on the family's scheduled-output plants it explained less
+            // than a p1^2 basis function on 5 of 12 (docs/bench-diagnose.md, helper h15so)
+            let mut sp = spec.clone();
+            sp.scheduled_output = true;
+            sp.nested_in = Some(Box::new(refined_null(spec)));
+            self.push(
+                Effect::ScheduledOutput,
+                "an output equation with C^(i), D^(i), refined from the model's own structure refined (output error)".into(),
+                sp,
+            );
+        }
+    }
+    /// scheduling-nonlinearity: squares, cubes and products of the plain scheduling columns as
+    /// basis functions.
+    fn scheduling_nonlinearity(&mut self) {
+        let ctx = self.ctx;
+        let spec = ctx.spec;
+        let map = &spec.signals;
+        let s = map.m() - 1;
+        if s == 0 {
+            self.na.push((
+                Effect::SchedulingNonlinearity,
+                "the model has no scheduling signal".into(),
+            ));
+            return;
+        }
+        let sched_plain = plain_scheduling(map);
+        {
+            let has = |prod: &Vec<Factor>| map.scheduling.iter().any(|q| q == prod);
+            for (a, f) in sched_plain.iter().enumerate() {
+                let sq = vec![fac(&f.col, 2, f.delay, None)];
+                let cu = vec![fac(&f.col, 3, f.delay, None)];
+                if !has(&sq) {
+                    let mut sp = spec.clone();
+                    sp.signals.scheduling.push(sq.clone());
+                    self.push(
+                        Effect::SchedulingNonlinearity,
+                        format!("scheduling basis function {}", describe(&sq)),
+                        sp,
+                    );
+                    // the same basis function refined from the model's own structure refined
+                    // (refit::fit_nested), judged against that refined structure: the
+                    // counterpart of the refined scheduled-output variant, so that the two
+                    // structures are compared fitted the same way
+                    let mut sp = spec.clone();
+                    sp.signals.scheduling.push(sq.clone());
+                    sp.nested_in = Some(Box::new(refined_null(spec)));
+                    self.push(
+                        Effect::SchedulingNonlinearity,
+                        format!(
+                            "scheduling basis function {}, refined from the model's own structure refined (output error)",
+                            describe(&sq)
+                        ),
+                        sp,
+                    );
+                    if !has(&cu) {
+                        let mut sp = spec.clone();
+                        sp.signals.scheduling.push(sq.clone());
+                        sp.signals.scheduling.push(cu.clone());
+                        self.push(
+                            Effect::SchedulingNonlinearity,
+                            format!(
+                                "scheduling basis functions {} and {}",
+                                describe(&sq),
+                                describe(&cu)
+                            ),
+                            sp,
+                        );
+                    }
+                }
+                for g in sched_plain.iter().skip(a + 1) {
+                    let pr = vec![f.clone(), g.clone()];
+                    if !has(&pr) {
+                        let mut sp = spec.clone();
+                        sp.signals.scheduling.push(pr.clone());
+                        self.push(
+                            Effect::SchedulingNonlinearity,
+                            format!("scheduling basis function {}", describe(&pr)),
+                            sp,
+                        );
+                    }
+                }
+            }
+        }
+    }
+    /// input-nonlinearity: u^2, |u| u and sign(u) of each plain input channel.
+    fn input_nonlinearity(&mut self) {
+        let ctx = self.ctx;
+        let spec = ctx.spec;
+        let map = &spec.signals;
+        // input-nonlinearity, per plain input channel
+        let inputs_plain = plain_inputs(map);
+        if inputs_plain.is_empty() {
+            self.na
+                .push((Effect::InputNonlinearity, "no plain input channel".into()));
+        }
+        for (_, f) in &inputs_plain {
+            // an input that takes two values in the training data (a random binary signal, a
+            // step between two levels): every static function of it is affine in it,
+            // g(u) = g(a) + (g(b) - g(a)) (u - a) / (b - a), so u^2, |u| u and sign(u) are a
+            // constant (output-offset's channel) plus a multiple of u: exact duplicates of
+            // simpler structures, whose refit cannot tell them apart (not tried)
+            if ctx
+                .train
+                .column(&f.col)
+                .is_some_and(|c| at_most_levels(c, 2))
+            {
+                self.na.push((
+                    Effect::InputNonlinearity,
+                    format!(
+                        "{0}^2, |{0}| {0} and sign({0}) are not tried: {0} takes two values in the \
+                         training data, so each is a constant (the channel of output-offset) plus \
+                         a multiple of {0}",
+                        f.col
+                    ),
+                ));
+                continue;
+            }
+            // an input of one sign throughout makes sign(u) the constant (the output offset's
+            // regressor) and |u| u = +-u^2: the same regressors, tried once
+            let one_sign = [ctx.train, ctx.val].iter().all(|d| {
+                d.column(&f.col)
+                    .is_some_and(|c| c.iter().all(|&v| v > 0.0) || c.iter().all(|&v| v < 0.0))
+            });
+            if one_sign {
+                self.na.push((
+                    Effect::InputNonlinearity,
+                    format!(
+                        "sign({0}) and |{0}| {0} are not tried: {0} has one sign throughout, so \
+                         sign({0}) is the constant of output-offset and |{0}| {0} is +-{0}^2",
+                        f.col
+                    ),
+                ));
+            }
+            for (v, prod) in [
+                vec![fac(&f.col, 2, f.delay, None)],
+                vec![fac(&f.col, 1, f.delay, Some(FactorFn::Abs)), f.clone()],
+                vec![fac(&f.col, 1, f.delay, Some(FactorFn::Sign))],
+            ]
+            .into_iter()
+            .enumerate()
+            {
+                if map.inputs.contains(&prod) || (one_sign && v > 0) {
+                    continue;
+                }
+                let mut sp = spec.clone();
+                sp.signals.inputs.push(prod.clone());
+                self.push(
+                    Effect::InputNonlinearity,
+                    format!("input channel {}", describe(&prod)),
+                    sp,
+                );
+            }
+        }
+    }
+    /// input-delay: each plain input channel delayed 1..=[`MAX_DELAY`] samples.
+    fn input_delay(&mut self) {
+        let ctx = self.ctx;
+        let spec = ctx.spec;
+        let map = &spec.signals;
+        // input-delay, per plain input channel
+        let inputs_plain = plain_inputs(map);
+        if inputs_plain.is_empty() {
+            self.na
+                .push((Effect::InputDelay, "no plain input channel".into()));
+        }
+        for (i, f) in &inputs_plain {
+            for d in 1..=MAX_DELAY {
+                let mut sp = spec.clone();
+                let g = fac(&f.col, 1, f.delay + d, None);
+                sp.signals.inputs[*i] = vec![g.clone()];
+                self.push(
+                    Effect::InputDelay,
+                    format!(
+                        "input channel {} instead of {} (dead time {d} samples)",
+                        g.describe(),
+                        f.describe()
+                    ),
+                    sp,
+                );
+            }
+        }
+    }
+    /// scheduling-noise: the BC-IV correction of the LPV-ARX path (paper 3).
+    fn scheduling_noise(&mut self) {
+        let ctx = self.ctx;
+        let spec = ctx.spec;
+        let map = &spec.signals;
+        let s = map.m() - 1;
+        let l = map.outputs.len();
+        // scheduling-noise: the BC-IV path (LPV-ARX), single output, polynomial basis
+        let sched_plain = plain_scheduling(map);
+        if s == 0 {
+            self.na.push((
+                Effect::SchedulingNoise,
+                "the model has no scheduling signal".into(),
+            ));
+        } else if l != 1 {
+            self.na.push((
+                Effect::SchedulingNoise,
+                "the BC-IV path (LPV-ARX) identifies single-output models; this one has several outputs"
+                    .into(),
+            ));
+        } else if sched_plain.len() != s {
+            self.na.push((
+                Effect::SchedulingNoise,
+                "the BC-IV correction needs a basis of plain scheduling columns".into(),
+            ));
+        } else {
+            let n = ctx.base.order.clamp(1, 6);
+            let floors: Vec<f64> = sched_plain
+                .iter()
+                .map(|f| ctx.train.column(&f.col).map_or(0.0, noise_floor))
+                .collect();
+            let s1 = floors[0];
+            for extra in [0usize, 1] {
+                let sig: Vec<Vec<Factor>> = sched_plain
+                    .iter()
+                    .map(|f| vec![fac(&f.col, 1, f.delay + extra, None)])
+                    .collect();
+                let names = sig
+                    .iter()
+                    .map(|p| describe(p))
+                    .collect::<Vec<_>>()
+                    .join(", ");
+                for sigma in [None, Some(s1)] {
+                    if sigma.is_some() && s1 <= 0.0 {
+                        continue;
+                    }
+                    let mut sp = spec.clone();
+                    sp.arx = Some(ArxSpec {
+                        na: n,
+                        nb: n,
+                        ng: 1,
+                        sched_signals: sig.clone(),
+                        calib_fraction: 0.25,
+                        sigma: sigma
+                            .map(|v| (v, floors.iter().map(|f| (f / v) * (f / v)).collect())),
+                    });
+                    let how = match sigma {
+                        None => "sigma_eta chosen on calibration data".to_string(),
+                        Some(v) => format!(
+                            "sigma_eta = {v:.4} from the white-noise floor of the scheduling spectrum"
+                        ),
+                    };
+                    self.push(
+                        Effect::SchedulingNoise,
+                        format!(
+                            "LPV-ARX (na = nb = {n}) by bias-corrected IV, {how}, scheduling {names}"
+                        ),
+                        sp,
+                    );
+                }
+            }
+        }
+    }
+    /// periodic-disturbance: the harmonic series of the training residual's lines as sin/cos
+    /// input channels.
+    fn periodic_disturbance(&mut self) {
+        let ctx = self.ctx;
+        let spec = ctx.spec;
+        // periodic-disturbance: the lines of the training residual grouped as a harmonic series
+        // of one fundamental, the frequency refined by least squares (see `periodic_lines`)
+        let ts = match (sample_time(ctx.train), sample_time(ctx.val)) {
+            (Some(a), Some(b)) if (a - b).abs() <= 1e-6 * a => Some(a),
+            _ => None,
+        };
+        let lines = periodic_lines(ctx.train_residual);
+        if lines.is_empty() {
+            self.na.push((
+                Effect::PeriodicDisturbance,
+                "no spectral line in the residual".into(),
+            ));
+        }
+        let carried = phase_carried(ctx.train, ctx.val);
+        if !lines.is_empty() && !carried {
+            self.na.push((
+                Effect::PeriodicDisturbance,
+                format!(
+                    "the phase of a sinusoid cannot be carried from the training to the validation data ({}): \
+                     the fixed sinusoid is scored as it would be used, and a resonant disturbance model \
+                     (noise states at the line frequencies, judged on the one-step prediction) is tried beside it",
+                    if ts.is_none() {
+                        "no common time column t"
+                    } else {
+                        "the validation record's t does not continue the training record's"
+                    }
+                ),
+            ));
+        }
+        for line in &lines {
+            for h in 1..=line.harmonics {
+                let (col, om, unit) = match ts {
+                    Some(ts) => ("t", line.omega / ts, "rad/s"),
+                    None => ("k", line.omega, "rad/sample"),
+                };
+                let mut sp = spec.clone();
+                // the null refit's order: the lines are added to the model as it stands (a nested
+                // structure). Deterministic sinusoid channels add rank-2 blocks per line to PBSID's
+                // past data and move the singular-value gap (measured on the smart rotor at 370
+                // rpm: order 9 with 1P, 6 with 1P and 2P, and a worse held-out error than 1P alone)
+                sp.opts.order = Order::Fixed(ctx.base.order);
+                // channels of an earlier series of the same fundamental are replaced (its
+                // frequency is refined again), so that no channel appears twice
+                sp.signals.inputs.retain(|p| match p.as_slice() {
+                    [f] if f.col == col
+                        && matches!(f.func, Some(FactorFn::Sin | FactorFn::Cos)) =>
+                    {
+                        let r = f.omega.unwrap_or(1.0) / om;
+                        (r - r.round()).abs() * r.round().max(1.0).sqrt() * line.omega
+                            > 3.0 * 2.0 * std::f64::consts::PI / ctx.train_residual.nrows() as f64
+                            || r.round() < 1.0
+                    }
+                    _ => true,
+                });
+                for i in 1..=h {
+                    for func in [FactorFn::Sin, FactorFn::Cos] {
+                        sp.signals.inputs.push(vec![Factor {
+                            omega: Some(i as f64 * om),
+                            ..fac(col, 1, 0, Some(func))
+                        }]);
+                    }
+                }
+                let series = if h == 1 {
+                    "the fundamental".to_string()
+                } else {
+                    format!("the fundamental and its harmonics 2..{h}")
+                };
+                self.push(
+                    Effect::PeriodicDisturbance,
+                    format!(
+                        "input channels sin and cos of {series} (1P..{h}P) of {om:.6} {unit} x {col} (period {:.3} samples; lines seen at {}; frequency by least squares on the training residual)",
+                        2.0 * std::f64::consts::PI / line.omega,
+                        line.seen
+                            .iter()
+                            .map(|k| format!("{k}P"))
+                            .collect::<Vec<_>>()
+                            .join(", ")
+                    ),
+                    sp,
+                );
+            }
+        }
+    }
+    /// order-too-low: order + 1, order + 2, and the past window + 2.
+    fn order_too_low(&mut self) {
+        let ctx = self.ctx;
+        let spec = ctx.spec;
+        let l = spec.signals.outputs.len();
+        let n = ctx.base.order;
+        let past = spec.opts.past;
+        for (order, p) in [(Some(n + 1), past), (Some(n + 2), past), (None, past + 2)] {
+            let mut sp = spec.clone();
+            sp.opts.past = p;
+            let detail;
+            match order {
+                Some(o) => {
+                    sp.opts.order = Order::Fixed(o);
+                    // enough singular values: future window f with f * l >= order + 1
+                    let need = (o + 1).div_ceil(l);
+                    let f = sp.opts.future.unwrap_or(p);
+                    if f < need {
+                        sp.opts.past = sp.opts.past.max(need);
+                        sp.opts.future = Some(need.min(sp.opts.past));
+                    }
+                    detail = format!("order {o} (was {n})");
+                }
+                None => {
+                    if let Some(f) = sp.opts.future {
+                        sp.opts.future = Some(f.min(p));
+                    }
+                    detail = format!(
+                        "past window {p} (was {past}), order {}",
+                        match sp.opts.order {
+                            Order::Auto => "from the singular values".to_string(),
+                            Order::Fixed(o) => o.to_string(),
+                        }
+                    );
+                }
+            }
+            self.push(Effect::OrderTooLow, detail, sp);
+        }
+    }
+    /// coloured-noise: the noise models and more states through K.
+    fn coloured_noise(&mut self) {
+        let ctx = self.ctx;
+        let spec = ctx.spec;
+        let l = spec.signals.outputs.len();
+        if spec.noise != Noise::Pbsid {
+            self.na.push((
+                Effect::ColouredNoise,
+                "the model already has a noise model".into(),
+            ));
+        } else {
+            let mut sp = spec.clone();
+            sp.noise = Noise::Innovation;
+            self.push(
+                Effect::ColouredNoise,
+                "an autoregressive model of the one-step residual (order by BIC) as innovation-driven states".into(),
+                sp,
+            );
+            let mut sp = spec.clone();
+            sp.noise = Noise::OutputError;
+            self.push(
+                Effect::ColouredNoise,
+                "an autoregressive model of the free-run residual (order by BIC) replacing K (output error + AR noise)".into(),
+                sp,
+            );
+        }
+        for extra in [1usize, 2] {
+            // noise states through K: a larger order scored on the one-step residual
+            let mut sp = spec.clone();
+            let o = ctx.base.order + extra;
+            sp.opts.order = Order::Fixed(o);
+            let need = (o + 1).div_ceil(l);
+            let f = sp.opts.future.unwrap_or(sp.opts.past);
+            if f < need {
+                sp.opts.past = sp.opts.past.max(need);
+                sp.opts.future = Some(need.min(sp.opts.past));
+            }
+            self.push(
+                Effect::ColouredNoise,
+                format!(
+                    "{extra} more state{} for the noise dynamics through K (order {o}, was {})",
+                    if extra == 1 { "" } else { "s" },
+                    ctx.base.order
+                ),
+                sp,
+            );
+        }
+    }
+    /// unused-signal: logged columns the model does not use, as an input or a scheduling signal.
+    fn unused_signal(&mut self) {
+        let ctx = self.ctx;
+        let spec = ctx.spec;
+        let map = &spec.signals;
+        // unused-signal: logged columns the model does not use
+        let used = |name: &str| {
+            map.inputs
+                .iter()
+                .chain(&map.scheduling)
+                .chain(&map.outputs)
+                .flatten()
+                .any(|f| f.col == name)
+        };
+        let mut any_logged = false;
+        for (name, kind) in column_roles(ctx.train) {
+            if kind != "logged" || used(&name) || ctx.val.column(&name).is_none() {
+                continue;
+            }
+            let col = ctx.train.column(&name).unwrap_or(&[]);
+            if col.iter().all(|v| *v == col[0]) {
+                continue;
+            }
+            any_logged = true;
+            let mut sp = spec.clone();
+            sp.signals.inputs.push(vec![Factor::col(&name)]);
+            self.push(
+                Effect::UnusedSignal,
+                format!("logged column {name} as an input channel"),
+                sp,
+            );
+            let mut sp = spec.clone();
+            sp.signals.scheduling.push(vec![Factor::col(&name)]);
+            self.push(
+                Effect::UnusedSignal,
+                format!("logged column {name} as a scheduling signal"),
+                sp,
+            );
+        }
+        if !any_logged {
+            self.na.push((
+                Effect::UnusedSignal,
+                "no logged column besides the model's signals".into(),
+            ));
+        }
+    }
+    /// output-nonlinearity: the own-output candidates of [`super::output::candidates`].
+    fn output_nonlinearity(&mut self) {
+        let ctx = self.ctx;
+        // the output-nonlinearity candidates (diagnose/output.rs)
+        let (own, why) = super::output::candidates(ctx);
+        for (detail, sp) in own {
+            self.push(Effect::OutputNonlinearity, detail, sp);
+        }
+        self.na.extend(why.map(|w| (Effect::OutputNonlinearity, w)));
+    }
+}
+
+/// The plain scheduling columns of a signal map (a single factor, power 1, no function).
+fn plain_scheduling(map: &SignalMap) -> Vec<Factor> {
+    map.scheduling
+        .iter()
+        .filter_map(|p| plain(p).cloned())
+        .collect()
+}
+
+/// The plain input channels of a signal map (index, factor), time columns excluded.
+fn plain_inputs(map: &SignalMap) -> Vec<(usize, Factor)> {
+    map.inputs
+        .iter()
+        .enumerate()
+        .filter_map(|(i, p)| plain(p).map(|f| (i, f.clone())))
+        .filter(|(_, f)| f.col != "k" && f.col != "t")
+        .collect()
+}
+
+/// A harmonic series found in a residual: fundamental (rad/sample), harmonics to model,
+/// and the harmonic numbers of the significant lines it groups.
+#[derive(Debug, Clone)]
+pub struct Lines {
+    /// Fundamental, rad/sample, refined by least squares over the harmonics.
+    pub omega: f64,
+    /// Harmonics 1..=this are tried (one variant per count).
+    pub harmonics: usize,
+    /// Harmonic numbers of the significant lines of the periodogram it explains.
+    pub seen: Vec<usize>,
+}
+
+/// Most harmonics of one fundamental tried.
+pub const MAX_HARMONICS: usize = 6;
+
+/// The spectral lines of a residual (N x l) grouped as harmonic series (1P, 2P, 3P...).
+/// The strongest significant line (periodogram, [`super::residual::spectrum`]) is the h-th
+/// harmonic of a fundamental for the h in 1..=4 that places the most other significant
+/// lines on integer multiples (within 3 bins; ties: the smaller h); the fundamental is then
+/// refined by least squares on the frequency of the whole series (summed over outputs,
+/// [`super::stats::refine_harmonic`]): a periodogram bin's frequency error of up to pi / N
+/// turns into a phase error of up to pi / 2 across the record, and h-fold at the h-th
+/// harmonic. Without a significant line the strongest local maximum is used alone.
+/// Lines that are not multiples of the first fundamental are grouped the same way once more.
+pub fn periodic_lines(res: &DMatrix<f64>) -> Vec<Lines> {
+    let n = res.nrows();
+    let cols: Vec<Vec<f64>> = (0..res.ncols())
+        .map(|j| res.column(j).iter().copied().collect::<Vec<f64>>())
+        .filter(|e| e.iter().all(|v| v.is_finite()))
+        .collect();
+    if n < 64 || cols.is_empty() {
+        return vec![];
+    }
+    let bin = 2.0 * std::f64::consts::PI / n as f64;
+    let mut peaks: Vec<(f64, f64)> = Vec::new(); // omega, ratio
+    let mut tops: Vec<(f64, f64)> = Vec::new();
+    for (j, e) in cols.iter().enumerate() {
+        let sp = super::residual::spectrum(j + 1, e);
+        peaks.extend(sp.peaks.iter().map(|p| (p.omega, p.ratio)));
+        if sp.top.omega > 0.0 {
+            tops.push((sp.top.omega, sp.top.ratio));
+        }
+    }
+    if peaks.is_empty() {
+        // no significant line: the strongest local maximum, alone
+        peaks = tops
+            .into_iter()
+            .max_by(|a, b| a.1.total_cmp(&b.1))
+            .into_iter()
+            .collect();
+    }
+    peaks.sort_by(|a, b| b.1.total_cmp(&a.1));
+    let mut out: Vec<Lines> = Vec::new();
+    let tol = 3.0 * bin;
+    while let Some(&(ws, _)) = peaks.first() {
+        let on = |f0: f64, w: f64| {
+            let h = (w / f0).round();
+            h >= 1.0 && (w - h * f0).abs() < tol * h.max(1.0).sqrt()
+        };
+        let mut best = (0usize, 1usize);
+        for h in 1..=4usize {
+            let f0 = ws / h as f64;
+            if f0 < 4.0 * bin {
+                break;
+            }
+            let count = peaks.iter().filter(|p| on(f0, p.0)).count();
+            if count > best.0 {
+                best = (count, h);
+            }
+        }
+        let f0 = ws / best.1 as f64;
+        let mut seen: Vec<usize> = peaks
+            .iter()
+            .filter(|p| on(f0, p.0))
+            .map(|p| (p.0 / f0).round() as usize)
+            .collect();
+        seen.sort_unstable();
+        seen.dedup();
+        peaks.retain(|p| !on(f0, p.0));
+        let top_h = seen.last().copied().unwrap_or(1);
+        let nyq = ((std::f64::consts::PI / f0) - 1e-9).floor().max(1.0) as usize;
+        let harmonics = (top_h + 2).min(MAX_HARMONICS).min(nyq).max(1);
+        let fit_h = top_h.min(nyq).max(1);
+        let half = 0.75 * bin / fit_h as f64;
+        let omega = super::stats::refine_harmonic(&cols, f0 - half, f0 + half, fit_h);
+        if out.iter().all(|l| (l.omega - omega).abs() > tol) {
+            out.push(Lines {
+                omega,
+                harmonics: if seen.len() > 1 || best.1 > 1 {
+                    harmonics
+                } else {
+                    1
+                },
+                seen,
+            });
+        }
+        if out.len() >= 2 {
+            break;
+        }
+    }
+    out
+}
+
+/// Whether the phase of a sinusoid of `t` fitted on `train` carries to `val`: both have the
+/// same uniform time column and the validation record starts after the training record's end
+/// (it continues the record on the same clock).
+pub fn phase_carried(train: &Dataset, val: &Dataset) -> bool {
+    match (
+        sample_time(train),
+        sample_time(val),
+        train.column("t"),
+        val.column("t"),
+    ) {
+        (Some(a), Some(b), Some(tt), Some(tv)) if (a - b).abs() <= 1e-6 * a => {
+            tv.first().copied().unwrap_or(f64::NEG_INFINITY)
+                > tt.last().copied().unwrap_or(f64::INFINITY)
+        }
+        _ => false,
+    }
+}
+
+/// Largest number of training windows for which a scheduling variant beyond
+/// [`MAX_REGRESSORS`] is refit in the kernel (dual) form (an N x N kernel).
+pub const MAX_KERNEL_WINDOWS: usize = 4000;
+
+/// Largest PBSID regressor length a variant may have (unless the model's own is larger):
+/// beyond it a refit costs seconds (e.g. p^2 and p^3 with a past window of 5: 2728).
+pub const MAX_REGRESSORS: usize = 1500;
+
+/// The PBSID regressor length q = sum_{j=1..p} m^j (r + l) of a structure (0 for LPV-ARX).
+pub fn regressors(spec: &Spec) -> usize {
+    if spec.arx.is_some() {
+        return 0;
+    }
+    let m = spec.signals.m();
+    let w = spec.signals.inputs.len() + spec.signals.outputs.len();
+    let mut q = 0usize;
+    let mut mj = 1usize;
+    for _ in 0..spec.opts.past {
+        mj = mj.saturating_mul(m);
+        q = q.saturating_add(mj.saturating_mul(w));
+    }
+    q
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn two_level_columns_are_recognised_exactly() {
+        // a random binary input and a step between two levels take two values
+        assert!(at_most_levels(&[1.0, -1.0, -1.0, 1.0, 1.0], 2));
+        assert!(at_most_levels(&[0.0, 0.0, 2.5, 2.5, 0.0], 2));
+        assert!(at_most_levels(&[3.0, 3.0], 2));
+        // a third level, however rare, is not two-level
+        assert!(!at_most_levels(&[1.0, -1.0, 1.0, 1.0 + 1e-12], 2));
+        assert!(!at_most_levels(&[0.0, 1.0, 2.0], 2));
+    }
+}
