@@ -387,7 +387,10 @@ pub fn run_one_with(effect: &str, seed: u64, n: usize, val_len: Option<usize>) -
             }
         }
         for s in r.steps.iter().take(1).flat_map(|st| &st.variants_scored) {
-            if s.effect == "output-nonlinearity" || s.explained > 0.05 {
+            if s.effect == "output-nonlinearity"
+                || s.effect == "periodic-disturbance"
+                || s.explained > 0.05
+            {
                 let _ = writeln!(
                     v,
                     "    variant {} {} explained {:.3} p {:.1e} {:?}",
