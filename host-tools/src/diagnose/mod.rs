@@ -1,6 +1,6 @@
 //! Closing the loop with measured data (DESIGN.md section 6): `lpvid diagnose` computes the
 //! residual of a model on validation data, tests it ([`residual`]), scores every candidate
-//! missing effect of the catalogue ([`effects`]) by how much of the held-out residual a refit
+//! missing effect of the catalogue ([`catalogue`]) by how much of the held-out residual a refit
 //! with the effect added explains ([`refit`]), and with `--fix` adds the best one, refits
 //! with the model's own settings and reports the error before and after ([`report`]), with
 //! pictures ([`plots`]). Before an effect is named, its variant must also beat the model's
@@ -10,8 +10,14 @@
 //! the `order-too-low` finding.
 //!
 //! Where each idea lives: [`stats`] (distributions, correlations, FFT, batch means, least
-//! squares on the core's Gram), [`residual`] (the tests), [`effects`] (catalogue, scoring,
-//! noise threshold), [`refit`] (the model's own settings, constant channels, scheduled output
+//! squares on the core's Gram), [`residual`] (the tests), [`catalogue`] (the variants of
+//! each effect, one method per effect), [`output`] (the own-output variants), [`effects`]
+//! (scoring on held-out data, the noise threshold, the evidence), [`replicate`] (replication
+//! on training halves, cross-validation of short records), [`states`] (coloured-noise and
+//! order-too-low against the refined structure), [`memory`] (scores that lean on the
+//! estimated start), `judge` (the rules of a finding in order, the rule that blocked it),
+//! `rank` (which finding comes first), [`encompass`] (the encompassing test of two
+//! findings), [`refit`] (the model's own settings, constant channels, scheduled output
 //! equation, noise model, BC-IV path), [`report`] (JSON and the engineer's note), [`plots`]
 //! (SVG), [`plants`] (random plant families with one planted effect, for measuring the
 //! diagnosis).
