@@ -67,7 +67,7 @@ fn the_refined_p2_basis_stays_stable_and_is_a_finding() {
     let reported = fitted.model.fit["nested_refinement"]["frozen_radius"]
         .as_f64()
         .expect("the refinement reports its frozen radius");
-    println!("frozen radius over the training samples {rho:.4} (the guard's points {reported:.4})");
+    println!("frozen radius over the training samples {rho:.6} (the guard's points {reported:.6})");
     assert!(rho < 1.0, "{rho}");
     assert!(reported <= rho + 1e-12, "{reported} {rho}");
 }
