@@ -37,7 +37,9 @@ fn against(line: &str, effect: &str) -> (f64, f64) {
 /// fitted the PBSID way its comprehensive structure has too many regressors for a verdict.
 /// Asked, and judged like with like, the structure
 /// with both explains 31.3 % of the refined output equation's held-out error (p = 1.0e-3) and
-/// -5.5 % of the refined p1^2's: p1^2 is named (error ratio 4.87, its oracle's 3.58).
+/// -5.5 % of the refined p1^2's: p1^2 is named (error ratio 4.87, its oracle's 3.58). With the
+/// refinement kept frozen-stable (helper h22sref) the refined p1^2 replicates on the halves
+/// (54 %, 76 %) and is the finding itself, the same test gives 31.3 % and -0.9 %, ratio 8.97.
 #[test]
 fn the_scheduling_pair_is_judged_like_with_like() {
     let (_, out) = diagnose_one("scheduling-nonlinearity", 35000, 1500);
@@ -46,9 +48,14 @@ fn the_scheduling_pair_is_judged_like_with_like() {
     assert_eq!(f.effect, "scheduling-nonlinearity");
     assert!(f.significant, "{:?}", f.blocked_by);
     let line = &f.evidence[0];
+    // like with like: the pair's refined variants (h21sched), or since the refinement is kept
+    // frozen-stable (helper h22sref) the refined p1^2 is itself the finding, nested in the
+    // same refined structure as the refined output equation
     assert!(
         line.starts_with("encompassing test of scheduled-output and scheduling-nonlinearity")
-            && line.contains("each effect judged by its variant refined the same way")
+            && (line.contains("each effect judged by its variant refined the same way")
+                || f.detail
+                    .contains("p1^2, refined from the model's own structure refined"))
             && line.contains("so scheduling-nonlinearity is the effect"),
         "{line}"
     );

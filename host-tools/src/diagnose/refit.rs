@@ -444,7 +444,9 @@ pub fn fit_spec(spec: &Spec, train: &Dataset, base_fit: &Value) -> Result<Fitted
 /// keeps the null's biased A(mu), B(mu): both lost to a p1^2 basis function that reproduces
 /// part of p x; refined, each planted structure beats the other one's refit
 /// (docs/bench-diagnose.md, helper h15so). The structure's own PBSID estimate is refined as
-/// well and the lower training error kept (still at or below the null's): from the padded
+/// well and the lower training error kept (still at or below the null's), except that a
+/// refinement frozen-stable over the training operating points ([`crate::refine::FrozenGuard`])
+/// is kept before one that is not (then its error may be above an unstable null's): from the padded
 /// start alone the refinement stopped in a local minimum on several family plants (the p1^2
 /// of seed 9003 at 20.7 % where its PBSID estimate explained 87 %; docs, helper h17sc).
 pub fn fit_nested(
@@ -521,8 +523,14 @@ pub fn fit_nested(
             f64::INFINITY
         }
     };
+    // a refinement whose frozen A(mu) is unstable at an operating point of the training
+    // record (`refine::FrozenGuard`: its start was, and the guard only kept it from getting
+    // worse) loses to one that is stable, whatever their training errors
+    let unstable = |rf: &crate::refine::Refined| rf.frozen_radius.is_some_and(|r| r >= 1.0);
     let (rf, from) = match own {
-        Some(o) if train_mse(&o) < train_mse(&padded) => (o, "the structure's own PBSID estimate"),
+        Some(o) if (unstable(&o), train_mse(&o)) < (unstable(&padded), train_mse(&padded)) => {
+            (o, "the structure's own PBSID estimate")
+        }
         _ => (
             padded,
             "the refined fit of the model's own structure, the added coefficients zero",
@@ -541,6 +549,7 @@ pub fn fit_nested(
             "start": from,
             "refinement_mse": [rf.mse_before, rf.mse_after.min(rf.mse_before)],
             "refinement_iterations": rf.iterations,
+            "frozen_radius": rf.frozen_radius,
         },
         "train_rows": train.len(),
         "states": model.n(),
