@@ -612,7 +612,11 @@ impl Tridiagonal {
         use faer::dyn_stack::{MemBuffer, MemStack};
         use faer::linalg::evd::tridiag;
         let n = a.nrows();
-        let mut m = faer::Mat::<f64>::from_fn(n, n, |i, j| if i >= j { a[(i, j)] } else { 0.0 });
+        // the lower triangle, column by column (the reduction reads no other entry)
+        let mut m = faer::Mat::<f64>::zeros(n, n);
+        for j in 0..n {
+            m.col_as_slice_mut(j)[j..].copy_from_slice(&a.column(j).as_slice()[j..]);
+        }
         let bs = faer::linalg::qr::no_pivoting::factor::recommended_block_size::<f64>(n, n);
         let mut h = faer::Mat::<f64>::zeros(bs.max(1), n.saturating_sub(1));
         if n > 0 {

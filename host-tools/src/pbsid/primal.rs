@@ -103,7 +103,21 @@ fn dot(a: &[f64], b: &[f64]) -> f64 {
     (acc[0] + acc[1]) + (acc[2] + acc[3]) + tail
 }
 
-/// The dense symmetric matrix of a Gram's leading `len` rows and columns.
+/// The dense symmetric matrix of a Gram's leading `len` rows and columns: row i of the
+/// packed upper triangle (contiguous) is column i of the lower one from the diagonal down
+/// and row i of the upper one (the same values as `get(i, j)`, without an index per entry).
 pub(crate) fn dense<S: AsRef<[f64]> + AsMut<[f64]>>(g: &Gram<f64, S>, len: usize) -> DMatrix<f64> {
-    DMatrix::from_fn(len, len, |i, j| g.get(i, j))
+    let dim = g.dim();
+    let packed = g.packed();
+    let mut m = DMatrix::zeros(len, len);
+    let mut off = 0;
+    for i in 0..len {
+        let row = &packed[off..off + len - i];
+        m.column_mut(i).as_mut_slice()[i..].copy_from_slice(row);
+        for (j, &v) in row.iter().enumerate().skip(1) {
+            m[(i, i + j)] = v;
+        }
+        off += dim - i;
+    }
+    m
 }
