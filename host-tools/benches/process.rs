@@ -11,7 +11,10 @@
 //! - `gram_two_halves_B1_p3`: the plain statistics on one thread vs two halves on two
 //!   threads merged with the core's merge;
 //! - `streamed_vs_in_memory_B1_p3_N20000`: the primal fit from the whole record vs the
-//!   two streamed passes over chunks of 8192 samples.
+//!   two streamed passes over chunks of 8192 samples;
+//! - `order_check_regression_B1_p3`: without a validation file, the fit and the order
+//!   check's own regression on the first four fifths one after the other (before, and now
+//!   when no core is to spare) vs beside each other on two threads (now on an idle core).
 
 use criterion::{black_box, criterion_group, criterion_main, BenchmarkId, Criterion};
 use lpvid::{stat_vector_len, write_stat_vector, PbsidDims, Slab, StatsLayout};
@@ -22,7 +25,7 @@ use lpvid_host::observer::{
     stability_regions, ObserverRequest, SchedBox, REGION_WIDEN, REPORT_GRID,
 };
 use lpvid_host::pbsid::stream::PassOne;
-use lpvid_host::pbsid::{fit, PbsidOptions, Solver};
+use lpvid_host::pbsid::{fit, state_candidates, PbsidOptions, Solver};
 use lpvid_host::pipeline::{identify, DataFile, PbsidSettings};
 use lpvid_host::simulate::{score, Mode};
 use lpvid_host::systems;
@@ -197,7 +200,40 @@ fn streamed(c: &mut Criterion) {
     group.finish();
 }
 
+fn order_check_regression(c: &mut Criterion) {
+    let train = DataFile::from_bytes("b1-train.csv", B1).unwrap();
+    let (_, sig) = lpvid_host::pipeline::training_signals(&train.data, 3).unwrap();
+    let head = sig.slice(0, sig.len() - sig.len() / 5);
+    let opts = PbsidOptions::new(3);
+    let fit_and_head = || {
+        let f = state_candidates(&sig, None, &opts).unwrap();
+        let model = f.realize(&sig, &opts, None).unwrap();
+        (model.order, f)
+    };
+    let mut group = c.benchmark_group("order_check_regression_B1_p3");
+    group.sample_size(20);
+    group.bench_function("after_the_fit(before)", |b| {
+        b.iter(|| {
+            let (order, _) = fit_and_head();
+            let h = state_candidates(&head, None, &opts).unwrap();
+            black_box((order, h.singular_values()[0]))
+        })
+    });
+    group.bench_function("beside_the_fit(now, a core to spare)", |b| {
+        b.iter(|| {
+            std::thread::scope(|sc| {
+                let w = sc.spawn(|| state_candidates(&head, None, &opts).unwrap());
+                let (order, _) = fit_and_head();
+                let h = w.join().unwrap();
+                black_box((order, h.singular_values()[0]))
+            })
+        })
+    });
+    group.finish();
+}
+
 fn benches(c: &mut Criterion) {
+    order_check_regression(c);
     stages(c);
     stability(c);
     tridiagonal(c);

@@ -244,6 +244,23 @@ pub fn split_pays(len: usize, count: usize) -> bool {
     work >= SPLIT_MIN_WORK && std::thread::available_parallelism().is_ok_and(|n| n.get() >= 2)
 }
 
+/// Whether a second thread is likely to get a core of its own now: at least two cores and a
+/// one-minute load average (Linux `/proc/loadavg`; elsewhere taken as idle) below the number
+/// of cores, the judgement `make -l` makes. Only for work whose result does not depend on
+/// the thread it runs on (never for a split of sums, whose rounding would then depend on
+/// the load).
+pub fn spare_core() -> bool {
+    let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
+    if cores < 2 {
+        return false;
+    }
+    let load = std::fs::read_to_string("/proc/loadavg")
+        .ok()
+        .and_then(|s| s.split_whitespace().next()?.parse::<f64>().ok())
+        .unwrap_or(0.0);
+    load < cores as f64
+}
+
 /// Add the vectors `range` into `a` and the second half of them into `b` on a second thread
 /// when `split` (the statistics are sums: the caller merges `b` into `a` with the core's
 /// merge when done), else all into `a` on this thread.

@@ -93,10 +93,33 @@ pub fn identify(
         file: ds.source.clone(),
         source: e,
     };
-    let cands = pbsid::state_candidates(&sig, val_sig.as_ref(), opts).map_err(fit_error)?;
-    let fit = cands.realize(&sig, opts, None).map_err(fit_error)?;
     // --order auto: never an order whose held-out free run is far worse than order + 1 or + 2
-    let (fit, checked_opts, order_check) = check_order(ds, val, opts, fit, &cands, &map, &sig)?;
+    let hold_out = HoldOut::new(ds, val, opts, &sig);
+    let mut op_check = opts.clone();
+    op_check.refine = false;
+    // the check's own regression (without a validation file: on the first four fifths)
+    // depends on nothing of the fit's: beside the fit on a second thread when a core is to
+    // spare, else after it (the same computation either way, so the same numbers)
+    let head = hold_out.as_ref().and_then(|h| h.head.as_ref());
+    let beside = head.is_some() && crate::linalg::spare_core();
+    let (fitted, head_cands) = std::thread::scope(|sc| {
+        let worker = head
+            .filter(|_| beside)
+            .map(|head| sc.spawn(|| pbsid::state_candidates(head, None, &op_check)));
+        let fitted = pbsid::state_candidates(&sig, val_sig.as_ref(), opts)
+            .and_then(|cands| Ok((cands.realize(&sig, opts, None)?, cands)));
+        let head_cands = match worker {
+            Some(w) => Some(w.join().unwrap_or_else(|e| std::panic::resume_unwind(e))),
+            None if fitted.is_ok() => head.map(|h| pbsid::state_candidates(h, None, &op_check)),
+            None => None,
+        };
+        (fitted, head_cands)
+    });
+    let (fit, cands) = fitted.map_err(fit_error)?;
+    let (fit, checked_opts, order_check) = match hold_out {
+        Some(h) => check_order(ds, h, opts, &op_check, fit, &cands, head_cands, &map, &sig)?,
+        None => (fit, opts.clone(), None),
+    };
     let opts = &checked_opts;
     let names: Vec<String> = map.scheduling.iter().skip(1).map(|p| describe(p)).collect();
     let obs_step = observer::observer_step(
@@ -163,74 +186,94 @@ pub fn held_out_error(model: &ModelFile, ds: &Dataset) -> Result<f64, Error> {
     Ok(if e.is_finite() { e } else { f64::INFINITY })
 }
 
-/// The free-run check of `--order auto` ([`pbsid::free_run_order`]): the orders n, n + 1,
-/// n + 2 from the singular-value gap are realized from one regression (the fit's own
-/// `fit_cands` when a validation file is given, else one on the first four fifths of the
-/// training file: [`pbsid::StateCandidates`]) and scored in free run on held-out data (the
-/// last fifth, or the validation file) from an estimated initial state; the gap's order stays
-/// unless it is far worse than a larger one. A changed order is realized from `fit_cands`
-/// with that order fixed (so its record's order rule is the number, and diagnose's refits
-/// reproduce it). Returns the fit, the options it used and the check's
-/// record (None when the order was given or there is too little data to hold out).
-#[allow(clippy::too_many_arguments)]
-fn check_order(
-    ds: &Dataset,
-    val: Option<&Dataset>,
-    opts: &PbsidOptions,
-    fit: PbsidFit,
-    fit_cands: &pbsid::StateCandidates,
-    map: &SignalMap,
-    sig: &Signals,
-) -> Result<(PbsidFit, PbsidOptions, Option<Value>), Error> {
-    if opts.order != pbsid::Order::Auto || matches!(opts.reg, Reg::BpdnAic | Reg::BpdnSv) {
-        return Ok((fit, opts.clone(), None));
-    }
-    let n_rows = ds.len();
-    let (fit_sig, hold, held) = match val {
-        Some(v) => (None, v.clone(), "the validation file"),
-        None => {
-            let cut = n_rows - n_rows / 5;
-            if n_rows / 5 < 100 || cut < 10 * (opts.past + 3) {
-                return Ok((fit, opts.clone(), None));
-            }
-            let tail = Dataset {
+/// What the free-run check of `--order auto` scores on: the validation file, else the last
+/// fifth of the training file with the candidates from a regression on the first four
+/// fifths (`head`). None when the order was given, the regularisation picks its own order
+/// (BPDN) or there is too little data to hold out.
+struct HoldOut {
+    head: Option<Signals>,
+    hold: Dataset,
+    held: &'static str,
+}
+
+impl HoldOut {
+    fn new(
+        ds: &Dataset,
+        val: Option<&Dataset>,
+        opts: &PbsidOptions,
+        sig: &Signals,
+    ) -> Option<Self> {
+        if opts.order != pbsid::Order::Auto || matches!(opts.reg, Reg::BpdnAic | Reg::BpdnSv) {
+            return None;
+        }
+        if let Some(v) = val {
+            return Some(HoldOut {
+                head: None,
+                hold: v.clone(),
+                held: "the validation file",
+            });
+        }
+        let n_rows = ds.len();
+        let cut = n_rows - n_rows / 5;
+        if n_rows / 5 < 100 || cut < 10 * (opts.past + 3) {
+            return None;
+        }
+        Some(HoldOut {
+            head: Some(sig.slice(0, cut)),
+            hold: Dataset {
                 source: format!("{} (last fifth)", ds.source),
                 names: ds.names.clone(),
                 cols: ds.cols.iter().map(|c| c[cut..].to_vec()).collect(),
-            };
-            (
-                Some(sig.slice(0, cut)),
-                tail,
-                "the last fifth of the training file",
-            )
-        }
-    };
+            },
+            held: "the last fifth of the training file",
+        })
+    }
+}
+
+/// The free-run check of `--order auto` ([`pbsid::free_run_order`]): the orders n, n + 1,
+/// n + 2 from the singular-value gap are realized from one regression (the fit's own
+/// `fit_cands` when a validation file is given, else `head_cands`, the regression on the
+/// first four fifths of the training file: [`HoldOut`]) and scored in free run on held-out
+/// data (the last fifth, or the validation file) from an estimated initial state; the gap's
+/// order stays unless it is far worse than a larger one. A changed order is realized from
+/// `fit_cands` with that order fixed (so its record's order rule is the number, and
+/// diagnose's refits reproduce it). Returns the fit, the options it used and the check's
+/// record (None when the head regression failed).
+#[allow(clippy::too_many_arguments)]
+fn check_order(
+    ds: &Dataset,
+    hold_out: HoldOut,
+    opts: &PbsidOptions,
+    op_check: &PbsidOptions,
+    fit: PbsidFit,
+    fit_cands: &pbsid::StateCandidates,
+    head_cands: Option<Result<pbsid::StateCandidates, pbsid::FitError>>,
+    map: &SignalMap,
+    sig: &Signals,
+) -> Result<(PbsidFit, PbsidOptions, Option<Value>), Error> {
+    let HoldOut { head, hold, held } = hold_out;
     let n0 = fit.order;
     let max = opts.max_order.min(fit.singular_values.len());
     // one regression for every candidate order (they differ only in the realization): the
-    // fit's own with a validation file, else one on the first four fifths
-    let mut op_check = opts.clone();
-    op_check.refine = false;
+    // fit's own with a validation file, else the one on the first four fifths
     let own;
-    let (cands, fit_sig) = match &fit_sig {
-        None => (fit_cands, sig),
-        Some(head) => match pbsid::state_candidates(head, None, &op_check) {
-            Ok(c) => {
-                own = c;
-                (&own, head)
-            }
-            Err(_) => return Ok((fit, opts.clone(), None)),
-        },
+    let (cands, fit_sig) = match (&head, head_cands) {
+        (Some(head), Some(Ok(c))) => {
+            own = c;
+            (&own, head)
+        }
+        (Some(_), _) => return Ok((fit, opts.clone(), None)),
+        (None, _) => (fit_cands, sig),
     };
     // with a validation file and no --refine the fit's own model is the gap order's
     // realization from these candidates (same regression, same states, same least
     // squares): it is scored as it is instead of realized again
-    let own_is_n0 = val.is_some() && !opts.refine;
+    let own_is_n0 = head.is_none() && !opts.refine;
     let err = |o: usize| -> Option<f64> {
         let model = if own_is_n0 && o == n0 {
             fit.model.clone()
         } else {
-            cands.realize(fit_sig, &op_check, Some(o)).ok()?.model
+            cands.realize(fit_sig, op_check, Some(o)).ok()?.model
         };
         let mf = ModelFile {
             kind: ModelKind::Ss(model),
