@@ -219,6 +219,16 @@ impl Catalogue<'_, '_> {
         })
     }
 
+    /// The plain input channels the input effects vary ([`plain_inputs`]); when there is none,
+    /// `effect` is noted as not applicable.
+    fn plain_inputs_for(&mut self, effect: Effect) -> Vec<(usize, Factor)> {
+        let inputs = plain_inputs(&self.ctx.spec.signals);
+        if inputs.is_empty() {
+            self.na.push((effect, "no plain input channel".into()));
+        }
+        inputs
+    }
+
     /// output-offset: a constant input channel.
     fn output_offset(&mut self) {
         let ctx = self.ctx;
@@ -239,6 +249,7 @@ impl Catalogue<'_, '_> {
             );
         }
     }
+
     /// feedthrough: the D matrix estimated.
     fn feedthrough(&mut self) {
         let ctx = self.ctx;
@@ -252,6 +263,7 @@ impl Catalogue<'_, '_> {
             self.push(Effect::Feedthrough, "estimate the feedthrough D".into(), sp);
         }
     }
+
     /// scheduled-output: C^(i), D^(i), fitted by PBSID and nested in the refined structure.
     fn scheduled_output(&mut self) {
         let ctx = self.ctx;
@@ -294,6 +306,7 @@ impl Catalogue<'_, '_> {
             );
         }
     }
+
     /// scheduling-nonlinearity: squares, cubes and products of the plain scheduling columns as
     /// basis functions.
     fn scheduling_nonlinearity(&mut self) {
@@ -367,17 +380,13 @@ impl Catalogue<'_, '_> {
             }
         }
     }
+
     /// input-nonlinearity: u^2, |u| u and sign(u) of each plain input channel.
     fn input_nonlinearity(&mut self) {
         let ctx = self.ctx;
         let spec = ctx.spec;
         let map = &spec.signals;
-        // input-nonlinearity, per plain input channel
-        let inputs_plain = plain_inputs(map);
-        if inputs_plain.is_empty() {
-            self.na
-                .push((Effect::InputNonlinearity, "no plain input channel".into()));
-        }
+        let inputs_plain = self.plain_inputs_for(Effect::InputNonlinearity);
         for (_, f) in &inputs_plain {
             // an input that takes two values in the training data (a random binary signal, a
             // step between two levels): every static function of it is affine in it,
@@ -437,17 +446,11 @@ impl Catalogue<'_, '_> {
             }
         }
     }
+
     /// input-delay: each plain input channel delayed 1..=[`MAX_DELAY`] samples.
     fn input_delay(&mut self) {
-        let ctx = self.ctx;
-        let spec = ctx.spec;
-        let map = &spec.signals;
-        // input-delay, per plain input channel
-        let inputs_plain = plain_inputs(map);
-        if inputs_plain.is_empty() {
-            self.na
-                .push((Effect::InputDelay, "no plain input channel".into()));
-        }
+        let spec = self.ctx.spec;
+        let inputs_plain = self.plain_inputs_for(Effect::InputDelay);
         for (i, f) in &inputs_plain {
             for d in 1..=MAX_DELAY {
                 let mut sp = spec.clone();
@@ -465,6 +468,7 @@ impl Catalogue<'_, '_> {
             }
         }
     }
+
     /// scheduling-noise: the BC-IV correction of the LPV-ARX path (paper 3).
     fn scheduling_noise(&mut self) {
         let ctx = self.ctx;
@@ -538,6 +542,7 @@ impl Catalogue<'_, '_> {
             }
         }
     }
+
     /// periodic-disturbance: the harmonic series of the training residual's lines as sin/cos
     /// input channels.
     fn periodic_disturbance(&mut self) {
@@ -626,6 +631,7 @@ impl Catalogue<'_, '_> {
             }
         }
     }
+
     /// order-too-low: order + 1, order + 2, and the past window + 2.
     fn order_too_low(&mut self) {
         let ctx = self.ctx;
@@ -665,6 +671,7 @@ impl Catalogue<'_, '_> {
             self.push(Effect::OrderTooLow, detail, sp);
         }
     }
+
     /// coloured-noise: the noise models and more states through K.
     fn coloured_noise(&mut self) {
         let ctx = self.ctx;
@@ -713,6 +720,7 @@ impl Catalogue<'_, '_> {
             );
         }
     }
+
     /// unused-signal: logged columns the model does not use, as an input or a scheduling signal.
     fn unused_signal(&mut self) {
         let ctx = self.ctx;
@@ -759,6 +767,7 @@ impl Catalogue<'_, '_> {
             ));
         }
     }
+
     /// output-nonlinearity: the own-output candidates of [`super::output::candidates`].
     fn output_nonlinearity(&mut self) {
         let ctx = self.ctx;
