@@ -602,24 +602,29 @@ fn design_residual(
     fb: &crate::model::Feedback,
 ) -> nalgebra::DMatrix<f64> {
     let run = |mode| &sig.y - crate::simulate::simulate_feedback(&base.model.kind, sig, fb, mode);
+    // each output's own variance, once ([`crate::linalg::mean_std`])
+    let var_y: Vec<f64> = (0..sig.y.ncols())
+        .map(|j| {
+            crate::linalg::mean_std(sig.y.column(j).iter().copied())
+                .1
+                .powi(2)
+        })
+        .collect();
     let informative = |res: &nalgebra::DMatrix<f64>| {
-        (0..res.ncols()).all(|j| {
-            let y = sig.y.column(j);
-            let n = y.len().max(1) as f64;
-            let mean = y.sum() / n;
-            let var_y = y.iter().map(|v| (v - mean) * (v - mean)).sum::<f64>() / n;
-            let mse = res.column(j).iter().map(|e| e * e).sum::<f64>() / n;
-            mse.is_finite() && mse <= var_y
+        var_y.iter().enumerate().all(|(j, v)| {
+            let mse = res.column(j).iter().map(|e| e * e).sum::<f64>() / res.nrows().max(1) as f64;
+            mse.is_finite() && mse <= *v
         })
     };
-    for mode in [Mode::FreeRun, Mode::Predictor] {
-        let res = run(mode);
-        if informative(&res) {
-            return res;
-        }
+    let free = run(Mode::FreeRun);
+    if informative(&free) {
+        return free;
     }
-    let lags = base.order + 2;
-    arx_residual(sig, lags).unwrap_or_else(|| run(Mode::FreeRun))
+    let one_step = run(Mode::Predictor);
+    if informative(&one_step) {
+        return one_step;
+    }
+    arx_residual(sig, base.order + 2).unwrap_or(free)
 }
 
 /// One-step residual of the linear ARX model y(k) = sum_{i=1..lags} A_i y(k-i) +
