@@ -17,6 +17,10 @@ use crate::pbsid::Order;
 /// Largest input delay tried (samples).
 pub const MAX_DELAY: usize = 8;
 
+/// Poles of the low-pass scheduling signals of the scheduling-noise variants
+/// ([`Catalogue::smoothed_scheduling`]).
+pub const SMOOTH_POLES: [f64; 2] = [0.5, 0.8];
+
 fn plain(prod: &[Factor]) -> Option<&Factor> {
     match prod {
         [f] if f.pow == 1.0 && f.func.is_none() => Some(f),
@@ -165,7 +169,7 @@ impl Catalogue<'_, '_> {
         let scheduling_effect = matches!(
             effect,
             Effect::ScheduledOutput | Effect::SchedulingNonlinearity
-        );
+        ) || (effect == Effect::SchedulingNoise && spec.arx.is_none());
         if q > MAX_REGRESSORS.max(2 * self.q_base)
             && !(scheduling_effect && windows <= MAX_KERNEL_WINDOWS)
         {
@@ -201,12 +205,7 @@ impl Catalogue<'_, '_> {
             // (refit::fit_nested) is judged against that refined structure
             .or_else(|| spec.nested_in.as_deref().cloned());
         let mut spec = spec;
-        if q > MAX_REGRESSORS.max(2 * self.q_base)
-            && matches!(
-                effect,
-                Effect::ScheduledOutput | Effect::SchedulingNonlinearity
-            )
-        {
+        if q > MAX_REGRESSORS.max(2 * self.q_base) && scheduling_effect {
             // a richer scheduling basis is always tried: in the kernel form its cost does not
             // grow with the regressor length (same regularisation, same windows)
             spec.opts.solver = crate::pbsid::Solver::Dual;
@@ -483,7 +482,10 @@ impl Catalogue<'_, '_> {
                 Effect::SchedulingNoise,
                 "the model has no scheduling signal".into(),
             ));
-        } else if l != 1 {
+            return;
+        }
+        self.smoothed_scheduling(&sched_plain);
+        if l != 1 {
             self.na.push((
                 Effect::SchedulingNoise,
                 "the BC-IV path (LPV-ARX) identifies single-output models; this one has several outputs"
@@ -540,6 +542,37 @@ impl Catalogue<'_, '_> {
                     );
                 }
             }
+        }
+    }
+
+    /// scheduling-noise in the state-space structure: each plain scheduling column kept and its
+    /// causal low-pass added as one more scheduling signal, A(mu) = A0 + p A1 + lowpass(p) A2
+    /// (B and, when scheduled, C alike). A white sensor noise on p biases the PBSID regression,
+    /// whose Kronecker products multiply the noise of p past samples; the slow part of p, which
+    /// the low-pass passes and a white noise mostly does not, lets the refit weight the plant's
+    /// response to p apart from the noise. The variant nests the model's structure (A2 = 0), so
+    /// on a noise-free p it has little to add.
+    fn smoothed_scheduling(&mut self, sched_plain: &[Factor]) {
+        let spec = self.ctx.spec;
+        for a in SMOOTH_POLES {
+            let mut sp = spec.clone();
+            let mut names = Vec::new();
+            for f in sched_plain {
+                let g = Factor {
+                    smooth: Some(a),
+                    ..f.clone()
+                };
+                names.push(g.describe());
+                sp.signals.scheduling.push(vec![g]);
+            }
+            self.push(
+                Effect::SchedulingNoise,
+                format!(
+                    "scheduling signals {} added beside the measured ones (their slow part weighted apart from the fast part, where a noisy sensor is)",
+                    names.join(", ")
+                ),
+                sp,
+            );
         }
     }
 

@@ -679,6 +679,13 @@ pub fn evidence(
                     "the BC-IV fit uses a scheduling noise sigma_eta = {sp:.4}"
                 ));
             }
+            if let Some(b) = best.filter(|b| b.cand.spec.arx.is_none()) {
+                // the smoothed-scheduling variant (catalogue::Catalogue::smoothed_scheduling)
+                ev.push(format!(
+                    "the model predicts better when the slow part of the scheduling signal is weighted apart from its fast part, as with a white sensor noise on it: {}",
+                    b.cand.detail
+                ));
+            }
             nl(
                 &|r: &str| r.starts_with('p') && (r.contains("*u") || r.contains("*y")),
                 &mut ev,
