@@ -9,17 +9,20 @@ mod diagnose_support;
 use diagnose_support::family::{diagnose_one, run_one};
 use lpvid_host::diagnose::plants::family_case;
 
-/// scheduling-noise plant 1000 (order 3, affine in p1, random binary input, sensor noise 0.26
-/// std(p1) on the training record, output noise 2.5 %): the oracle (the user's structure refit
-/// on the noise-free p1) removes 3.44x of the held-out error. Nothing was named before (the
-/// BC-IV variants of order 3 LPV-ARX explain little of a state-space plant); the low-pass
-/// scheduling signal is named and its fix gains.
+/// scheduling-noise plants 1000 (order 3, affine in p1, random binary input, sensor noise 0.26
+/// std(p1) on the training record, output noise 2.5 %) and 9002: the oracle (the user's
+/// structure refit on the noise-free p1) reaches 3.44x and 6.80x of the held-out error.
+/// Nothing was named on either before (the BC-IV variants, LPV-ARX models, explain little of a
+/// state-space plant); the low-pass scheduling signal is named, and its fix gains 1.39x and
+/// 4.80x.
 #[test]
 fn a_noisy_scheduling_sensor_is_named_on_a_state_space_plant() {
-    let run = run_one("scheduling-noise", 1000, 1500);
-    println!("{} {:.3} {:?}", run.named, run.ratio, run.oracle);
-    assert_eq!(run.named, "scheduling-noise");
-    assert!(run.ratio >= 1.2, "{}", run.ratio);
+    for (seed, at_least) in [(1000, 1.2), (9002, 3.0)] {
+        let run = run_one("scheduling-noise", seed, 1500);
+        println!("{seed}: {} {:.3} {:?}", run.named, run.ratio, run.oracle);
+        assert_eq!(run.named, "scheduling-noise", "{seed}");
+        assert!(run.ratio >= at_least, "{seed}: {}", run.ratio);
+    }
     let (_, out) = diagnose_one("scheduling-noise", 1000, 1500);
     let first = out.report.findings.first().expect("a finding");
     assert!(first.detail.contains("lowpass"), "{}", first.detail);
