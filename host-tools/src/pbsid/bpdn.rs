@@ -615,6 +615,37 @@ impl FreeRun {
             rec.s + 1 == self.m && rec.r == self.r && rec.l == self.l,
             "record and model differ in size"
         );
+        if self.nc == 1 && self.nd == 1 {
+            match (self.n, self.r) {
+                (1, 1) => return self.run_inputs::<1, 1>(rec, bound),
+                (2, 1) => return self.run_inputs::<2, 1>(rec, bound),
+                (3, 1) => return self.run_inputs::<3, 1>(rec, bound),
+                (4, 1) => return self.run_inputs::<4, 1>(rec, bound),
+                (5, 1) => return self.run_inputs::<5, 1>(rec, bound),
+                (6, 1) => return self.run_inputs::<6, 1>(rec, bound),
+                (7, 1) => return self.run_inputs::<7, 1>(rec, bound),
+                (8, 1) => return self.run_inputs::<8, 1>(rec, bound),
+                (1, 2) => return self.run_inputs::<1, 2>(rec, bound),
+                (2, 2) => return self.run_inputs::<2, 2>(rec, bound),
+                (3, 2) => return self.run_inputs::<3, 2>(rec, bound),
+                (4, 2) => return self.run_inputs::<4, 2>(rec, bound),
+                (5, 2) => return self.run_inputs::<5, 2>(rec, bound),
+                (6, 2) => return self.run_inputs::<6, 2>(rec, bound),
+                (7, 2) => return self.run_inputs::<7, 2>(rec, bound),
+                (8, 2) => return self.run_inputs::<8, 2>(rec, bound),
+                _ => {}
+            }
+        }
+        self.error_below_order(rec, bound)
+    }
+
+    /// [`FreeRun::error_below`] without the kernel for one C and D and one or two inputs
+    /// (the scorer of before; `benches/bpdn.rs` runs both).
+    pub fn error_below_order(&self, rec: &ScoredRecord, bound: f64) -> f64 {
+        assert!(
+            rec.s + 1 == self.m && rec.r == self.r && rec.l == self.l,
+            "record and model differ in size"
+        );
         match self.n {
             1 => self.run_fixed::<1>(rec, bound),
             2 => self.run_fixed::<2>(rec, bound),
@@ -687,6 +718,77 @@ impl FreeRun {
             if diverged(&x) && k + 1 < samples {
                 return f64::INFINITY;
             }
+        }
+        finite_or_infinity(err)
+    }
+
+    /// [`FreeRun::run_fixed`] for a model with one C and one D (BPDN-SV's realizations) and
+    /// R inputs, both fixed at compile time: the weight 1 of the single C and D and of mu_0
+    /// is left out (1 x is x, to the bit), the record's row is read at fixed offsets, and no
+    /// scheduling vector is copied; the same products summed in the same order.
+    fn run_inputs<const N: usize, const R: usize>(&self, rec: &ScoredRecord, bound: f64) -> f64 {
+        let (l, m, s) = (self.l, self.m, rec.s);
+        let cols: Vec<[f64; N]> = self
+            .state_t
+            .chunks_exact(N)
+            .map(|c| *lanes::<N>(c))
+            .collect();
+        assert_eq!(cols.len(), m * (N + R), "state matrix of the model's size");
+        let (first, rest) = cols.split_at(N + R);
+        // output row j: [C_j D_j] at j (N + R)
+        let wo = N + R;
+        let mut x = [0.0; N];
+        let mut err = 0.0;
+        // whether the last state update diverged: tested with the bound at the next sample,
+        // so a divergence in the update after the last sample is not counted (as in `run`)
+        let mut bad = false;
+        for row in rec.rows.chunks_exact(s + R + l) {
+            let (sched, rest_row) = row.split_at(s);
+            let (u, y) = rest_row.split_at(R);
+            let u: &[f64; R] = u.try_into().expect("R inputs");
+            for (j, yj) in y.iter().enumerate() {
+                let (c, d) = self.output[j * wo..(j + 1) * wo].split_at(N);
+                let mut e = -0.0;
+                for a in 0..N {
+                    e += c[a] * x[a];
+                }
+                for a in 0..R {
+                    e += d[a] * u[a];
+                }
+                let e = e - yj;
+                err += e * e;
+            }
+            if (err >= bound) | bad {
+                return f64::INFINITY;
+            }
+            // block 0 (mu_0 = 1), then blocks 1..m weighted by the scheduling signals
+            let mut acc = [-0.0; N];
+            for (col, &xv) in first[..N].iter().zip(&x) {
+                for (sa, a) in acc.iter_mut().zip(col) {
+                    *sa += a * xv;
+                }
+            }
+            for (col, &uv) in first[N..].iter().zip(u) {
+                for (sa, a) in acc.iter_mut().zip(col) {
+                    *sa += a * uv;
+                }
+            }
+            for (blk, &wi) in rest.chunks_exact(N + R).zip(sched) {
+                for (col, &xv) in blk[..N].iter().zip(&x) {
+                    let v = wi * xv;
+                    for (sa, a) in acc.iter_mut().zip(col) {
+                        *sa += a * v;
+                    }
+                }
+                for (col, &uv) in blk[N..].iter().zip(u) {
+                    let v = wi * uv;
+                    for (sa, a) in acc.iter_mut().zip(col) {
+                        *sa += a * v;
+                    }
+                }
+            }
+            x = acc;
+            bad = diverged(&x);
         }
         finite_or_infinity(err)
     }
@@ -1076,41 +1178,50 @@ mod tests {
         }
     }
 
-    /// The scorer compiled for a fixed order gives the general scorer's bits, on models of
-    /// orders 1..=9 with one and two C and D matrices (B3: two inputs and outputs).
+    /// The scorers compiled for a fixed order (and for one C, one D and one or two inputs)
+    /// give the general scorer's bits, on models of orders 1..=9 with one and two C and D
+    /// matrices, on B3 (two inputs and outputs) and B2 (one of each).
     #[test]
     fn fixed_order_scorer_is_the_general_one() {
         let b3 = crate::systems::b3(120, 3);
-        let truth = crate::systems::b3_truth();
-        let (r, l, m) = (truth.r(), truth.l(), truth.m());
-        let record = ScoredRecord::new(&b3.train, m);
-        for n in 1..=9 {
-            for varying in [false, true] {
-                let mut model = truth.clone();
-                let f = |i: usize, j: usize, s: usize| {
-                    0.9 / n as f64 * ((i * 7 + j * 3 + s * 5 + n) as f64).sin()
-                };
-                model.a = (0..m)
-                    .map(|s| DMatrix::from_fn(n, n, |i, j| f(i, j, s)))
-                    .collect();
-                model.b = (0..m)
-                    .map(|s| DMatrix::from_fn(n, r, |i, j| f(i + 11, j, s)))
-                    .collect();
-                model.k = (0..m).map(|_| DMatrix::zeros(n, l)).collect();
-                let k = if varying { m } else { 1 };
-                model.c = (0..k)
-                    .map(|s| DMatrix::from_fn(l, n, |i, j| f(i + 5, j, s)))
-                    .collect();
-                model.d = (0..k)
-                    .map(|s| DMatrix::from_fn(l, r, |i, j| f(i + 9, j, s)))
-                    .collect();
-                let run = FreeRun::new(&model);
-                let fixed = run.error_below(&record, f64::INFINITY);
-                let general = run.run(&record, f64::INFINITY, vec![0.0; n]);
-                assert!(fixed.is_finite(), "n = {n}");
-                assert_eq!(fixed.to_bits(), general.to_bits(), "n = {n}, {varying}");
-                let half = run.error_below(&record, 0.5 * fixed);
-                assert_eq!(half, f64::INFINITY, "n = {n}");
+        let b2 = crate::systems::b2(75, 25.0, 3);
+        for (truth, sig) in [
+            (crate::systems::b3_truth(), &b3.train),
+            (crate::systems::b2_truth(), &b2.train),
+        ] {
+            let (r, l, m) = (truth.r(), truth.l(), truth.m());
+            let record = ScoredRecord::new(sig, m);
+            for n in 1..=9 {
+                for varying in [false, true] {
+                    let mut model = truth.clone();
+                    let f = |i: usize, j: usize, s: usize| {
+                        0.9 / n as f64 * ((i * 7 + j * 3 + s * 5 + n) as f64).sin()
+                    };
+                    model.a = (0..m)
+                        .map(|s| DMatrix::from_fn(n, n, |i, j| f(i, j, s)))
+                        .collect();
+                    model.b = (0..m)
+                        .map(|s| DMatrix::from_fn(n, r, |i, j| f(i + 11, j, s)))
+                        .collect();
+                    model.k = (0..m).map(|_| DMatrix::zeros(n, l)).collect();
+                    let k = if varying { m } else { 1 };
+                    model.c = (0..k)
+                        .map(|s| DMatrix::from_fn(l, n, |i, j| f(i + 5, j, s)))
+                        .collect();
+                    model.d = (0..k)
+                        .map(|s| DMatrix::from_fn(l, r, |i, j| f(i + 9, j, s)))
+                        .collect();
+                    let run = FreeRun::new(&model);
+                    let fixed = run.error_below(&record, f64::INFINITY);
+                    let order = run.error_below_order(&record, f64::INFINITY);
+                    let general = run.run(&record, f64::INFINITY, vec![0.0; n]);
+                    assert!(fixed.is_finite(), "n = {n}");
+                    assert_eq!(fixed.to_bits(), general.to_bits(), "n = {n}, {varying}");
+                    assert_eq!(order.to_bits(), general.to_bits(), "n = {n}, {varying}");
+                    let half = run.error_below(&record, 0.5 * fixed);
+                    assert_eq!(half, f64::INFINITY, "n = {n}");
+                    assert_eq!(run.error_below_order(&record, 0.5 * fixed), f64::INFINITY);
+                }
             }
         }
     }
