@@ -11,7 +11,10 @@
 //!   500 samples (the validation file of `scripts/compare-toolbox.sh`), models of order 2 / 4
 //!   / 8 with one C and one D as the realizations are: `one C, D, r fixed` (the kernel with
 //!   the input count fixed at compile time, what `error_below` runs) against `order fixed`
-//!   (`error_below_order`, the scorer before), the same bits.
+//!   (`error_below_order`, the scorer before), the same bits;
+//! - group `realize_for_scoring`: one order of a path point's `OrderSweep` (B2 training
+//!   record, states of order 4) packed for the scorer: `realize_scorer` (straight from the
+//!   least-squares solution) against `realize + FreeRun::new` (through `LpvSs`, before).
 //!
 //! Run: `cargo bench -p lpvid-host --bench bpdn`.
 
@@ -110,5 +113,35 @@ fn scorer(c: &mut Criterion) {
     group.finish();
 }
 
-criterion_group!(bpdn_bench, compare, scorer);
+fn realize_for_scoring(c: &mut Criterion) {
+    use lpvid_host::pbsid::realize::OrderSweep;
+    let data = rows();
+    let slab = Slab::new(&data, 1, 1, 2).unwrap();
+    let p = 5;
+    let dims = PbsidDims::new(1, 1, 1, p).unwrap();
+    let cols = slab.len() - p + 1;
+    let states = DMatrix::from_fn(4, cols, |i, k| {
+        (0..p)
+            .map(|j| ((i * 5 + j * 2) as f64 * 0.41).cos() * slab.y(k + j)[0])
+            .sum::<f64>()
+    });
+    let sweep = OrderSweep::new(&dims, &slab, &states, true).unwrap();
+    let mut group = c.benchmark_group("realize_for_scoring");
+    for n in [2usize, 4] {
+        assert!(sweep
+            .realize_scorer(n)
+            .unwrap()
+            .same_packing(&bpdn::FreeRun::new(&sweep.realize(n).unwrap())));
+        group.bench_function(BenchmarkId::new("realize_scorer", n), |b| {
+            b.iter(|| black_box(sweep.realize_scorer(black_box(n)).unwrap()))
+        });
+        group.bench_function(
+            BenchmarkId::new("realize + FreeRun::new (before)", n),
+            |b| b.iter(|| black_box(bpdn::FreeRun::new(&sweep.realize(black_box(n)).unwrap()))),
+        );
+    }
+    group.finish();
+}
+
+criterion_group!(bpdn_bench, compare, scorer, realize_for_scoring);
 criterion_main!(bpdn_bench);

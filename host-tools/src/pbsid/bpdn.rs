@@ -69,7 +69,6 @@
 //! the sparse estimate chose 3-10 in about a quarter of them).
 
 use std::cell::RefCell;
-use std::collections::HashMap;
 use std::ops::ControlFlow;
 use std::rc::Rc;
 
@@ -127,7 +126,9 @@ pub struct LazyGram {
     n: usize,
     q: usize,
     diag: Vec<f64>,
-    cache: RefCell<HashMap<usize, Rc<Vec<f64>>>>,
+    /// The Gram columns evaluated so far, by index (a slot per regressor: no hashing on
+    /// the solver's every `get`).
+    cache: RefCell<Vec<Option<Rc<Vec<f64>>>>>,
 }
 
 impl LazyGram {
@@ -186,7 +187,7 @@ impl LazyGram {
                 n,
                 q: qf,
                 diag,
-                cache: RefCell::new(HashMap::new()),
+                cache: RefCell::new(vec![None; qf]),
             },
             y,
         ))
@@ -213,7 +214,7 @@ impl LazyGram {
     }
 
     fn column(&self, j: usize) -> Rc<Vec<f64>> {
-        if let Some(c) = self.cache.borrow().get(&j) {
+        if let Some(c) = &self.cache.borrow()[j] {
             return c.clone();
         }
         let rj = self.row(j);
@@ -221,7 +222,7 @@ impl LazyGram {
             .map(|k| self.row(k).iter().zip(rj).map(|(a, b)| a * b).sum())
             .collect();
         let col = Rc::new(col);
-        self.cache.borrow_mut().insert(j, col.clone());
+        self.cache.borrow_mut()[j] = Some(col.clone());
         col
     }
 
@@ -271,12 +272,14 @@ impl SymMatrix<f64> for LazyGram {
         if i == j {
             return self.diag[i];
         }
-        if let Some(c) = self.cache.borrow().get(&j) {
+        let cache = self.cache.borrow();
+        if let Some(c) = &cache[j] {
             return c[i];
         }
-        if let Some(c) = self.cache.borrow().get(&i) {
+        if let Some(c) = &cache[i] {
             return c[j];
         }
+        drop(cache);
         self.column(j)[i]
     }
     fn add_scaled_column(&self, j: usize, alpha: f64, out: &mut [f64]) {
@@ -435,7 +438,10 @@ pub fn gamma_kz(
     let (p, l) = (dims.p, dims.l);
     let qf = g.q;
     let n = g.n;
-    let mut out = DMatrix::zeros(f * l, n + 1);
+    // accumulated row by row (row-major, n + 1 columns), each entry summed over the
+    // active columns in ascending order as before, then laid out as the matrix
+    let w = n + 1;
+    let mut acc = vec![0.0; f * l * w];
     let offsets: Vec<usize> = (1..=p + 1).map(|j| dims.block_offset(j)).collect();
     for col in (0..offsets[p]).filter(|&a| (0..l).any(|o| theta[o * qf + a] != 0.0)) {
         // column `col` of C K^p lies in block b (1-based) at offset `off` inside the block
@@ -451,14 +457,15 @@ pub fn gamma_kz(
             let zr = g.row(zrow);
             for (o, c) in coef.iter().enumerate() {
                 let row = (i - 1) * l + o;
-                for (k, v) in zr.iter().enumerate() {
-                    out[(row, k)] += c * v;
+                let (dst, last) = acc[row * w..(row + 1) * w].split_at_mut(n);
+                for (d, v) in dst.iter_mut().zip(zr) {
+                    *d += c * v;
                 }
-                out[(row, n)] += c * z_last[zrow];
+                last[0] += c * z_last[zrow];
             }
         }
     }
-    out
+    DMatrix::from_row_slice(f * l, w, &acc)
 }
 
 /// The scaled samples of `slab` as signals (inputs, outputs, scheduling mu[1..]).
@@ -562,6 +569,52 @@ pub struct FreeRun {
 }
 
 impl FreeRun {
+    /// Pack the model of [`LpvSs::from_abk`]`(abk, [c], [d])` (one C, one D) straight from
+    /// its least-squares solution `abk` = [A^(1) B^(1) K^(1) | ...]: the same entries as
+    /// [`FreeRun::new`] of that model.
+    pub fn from_abk(abk: &DMatrix<f64>, c: &DMatrix<f64>, d: &DMatrix<f64>) -> Self {
+        let (n, l, r) = (abk.nrows(), c.nrows(), d.ncols());
+        let wb = n + r + l;
+        let m = abk.ncols() / wb;
+        let w = m * (n + r);
+        let mut state_t = Vec::with_capacity(n * w);
+        for s in 0..m {
+            for col in 0..n + r {
+                state_t.extend_from_slice(abk.column(s * wb + col).as_slice());
+            }
+        }
+        let wo = n + r;
+        let mut output = vec![0.0; l * wo];
+        for j in 0..l {
+            let row = &mut output[j * wo..(j + 1) * wo];
+            for a in 0..n {
+                row[a] = c[(j, a)];
+            }
+            for a in 0..r {
+                row[n + a] = d[(j, a)];
+            }
+        }
+        FreeRun {
+            n,
+            r,
+            l,
+            m,
+            state_t,
+            output,
+            nc: 1,
+            nd: 1,
+        }
+    }
+
+    /// Whether two packed models are the same to the bit (sizes and every entry).
+    pub fn same_packing(&self, other: &FreeRun) -> bool {
+        let bits = |v: &[f64]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+        (self.n, self.r, self.l, self.m, self.nc, self.nd)
+            == (other.n, other.r, other.l, other.m, other.nc, other.nd)
+            && bits(&self.state_t) == bits(&other.state_t)
+            && bits(&self.output) == bits(&other.output)
+    }
+
     /// Pack `model`.
     pub fn new(model: &LpvSs) -> Self {
         let (n, r, l, m) = (model.n(), model.r(), model.l(), model.m());
@@ -1058,10 +1111,10 @@ pub fn select_by_simulation_with(
         // first n rows of x); a point whose Grams fail realizes at no order
         let sweep = OrderSweep::new(dims, slab, &x.rows(0, nmax).into_owned(), feedthrough);
         for &n in &orders {
-            let Ok(model) = sweep
+            let Ok(run) = sweep
                 .as_ref()
                 .map_err(|_| ())
-                .and_then(|s| s.realize(n).map_err(|_| ()))
+                .and_then(|s| s.realize_scorer(n).map_err(|_| ()))
             else {
                 continue;
             };
@@ -1073,7 +1126,7 @@ pub fn select_by_simulation_with(
                 Some(b) if val.is_some() => b.score,
                 Some(b) => nl * ((b.score - penalty) / nl).exp(),
             } * (1.0 + 1e-9);
-            let v = FreeRun::new(&model).error_below(&record, bound);
+            let v = run.error_below(&record, bound);
             let score = if val.is_some() {
                 v
             } else {
