@@ -14,7 +14,7 @@
 //!   (`error_below_order`, the scorer before), the same bits;
 //! - group `realize_for_scoring`: one order of a path point's `OrderSweep` (B2 training
 //!   record, states of order 4) packed for the scorer: `realize_scorer` (straight from the
-//!   least-squares solution) against `realize + FreeRun::new` (through `LpvSs`, before).
+//!   least-squares solution) against `realize + FreeRun::new` (through `LpvSs`; both form the normal equations the same way).
 //!
 //! Run: `cargo bench -p lpvid-host --bench bpdn`.
 
@@ -136,7 +136,7 @@ fn realize_for_scoring(c: &mut Criterion) {
             b.iter(|| black_box(sweep.realize_scorer(black_box(n)).unwrap()))
         });
         group.bench_function(
-            BenchmarkId::new("realize + FreeRun::new (before)", n),
+            BenchmarkId::new("realize + FreeRun::new (through LpvSs)", n),
             |b| b.iter(|| black_box(bpdn::FreeRun::new(&sweep.realize(black_box(n)).unwrap()))),
         );
     }
