@@ -7,6 +7,15 @@
 //!   `depths 1..=p, 1 thread` and `depths 1..=p, 2 threads`
 //!   ([`sparse::sv_over_depths_with`], what `fit` runs).
 //!
+//! - group `free_run_scorer`: BPDN-SV's free-run scorer (`bpdn::FreeRun`) on a B2 record of
+//!   500 samples (the validation file of `scripts/compare-toolbox.sh`), models of order 2 / 4
+//!   / 8 with one C and one D as the realizations are: `one C, D, r fixed` (the kernel with
+//!   the input count fixed at compile time, what `error_below` runs) against `order fixed`
+//!   (`error_below_order`, the scorer before), the same bits;
+//! - group `realize_for_scoring`: one order of a path point's `OrderSweep` (B2 training
+//!   record, states of order 4) packed for the scorer: `realize_scorer` (straight from the
+//!   least-squares solution) against `realize + FreeRun::new` (through `LpvSs`; both form the normal equations the same way).
+//!
 //! Run: `cargo bench -p lpvid-host --bench bpdn`.
 
 use criterion::{black_box, criterion_group, criterion_main, BenchmarkId, Criterion};
@@ -14,6 +23,7 @@ use lpvid::{PbsidDims, Samples, Slab};
 use lpvid_host::pbsid::bpdn::{self, Engine, LazyGram};
 use lpvid_host::pbsid::{sparse, PbsidOptions, Reg};
 use lpvid_host::systems;
+use nalgebra::DMatrix;
 
 /// Sample rows [u, y, 1, p] of B2's training record.
 fn rows() -> Vec<f64> {
@@ -66,5 +76,72 @@ fn compare(c: &mut Criterion) {
     group.finish();
 }
 
-criterion_group!(bpdn_bench, compare);
+/// A stable model of order `n` with B2's sizes (r = l = 1, m = 2), one C and one D.
+fn scored_model(n: usize) -> lpvid_host::lpvss::LpvSs {
+    let mut model = systems::b2_truth();
+    let f =
+        |i: usize, j: usize, s: usize| 0.9 / n as f64 * ((i * 7 + j * 3 + s * 5 + n) as f64).sin();
+    model.a = (0..2)
+        .map(|s| DMatrix::from_fn(n, n, |i, j| f(i, j, s)))
+        .collect();
+    model.b = (0..2)
+        .map(|s| DMatrix::from_fn(n, 1, |i, j| f(i + 11, j, s)))
+        .collect();
+    model.k = (0..2).map(|_| DMatrix::zeros(n, 1)).collect();
+    model.c = vec![DMatrix::from_fn(1, n, |i, j| f(i + 5, j, 0))];
+    model.d = vec![DMatrix::from_fn(1, 1, |i, j| f(i + 9, j, 0))];
+    model
+}
+
+fn scorer(c: &mut Criterion) {
+    let e = systems::b2(500, 25.0, 1);
+    let record = bpdn::ScoredRecord::new(&e.train, 2);
+    let mut group = c.benchmark_group("free_run_scorer");
+    for n in [2usize, 4, 8] {
+        let run = bpdn::FreeRun::new(&scored_model(n));
+        assert_eq!(
+            run.error_below(&record, f64::INFINITY).to_bits(),
+            run.error_below_order(&record, f64::INFINITY).to_bits()
+        );
+        group.bench_function(BenchmarkId::new("one C, D, r fixed", n), |b| {
+            b.iter(|| black_box(run.error_below(black_box(&record), f64::INFINITY)))
+        });
+        group.bench_function(BenchmarkId::new("order fixed (before)", n), |b| {
+            b.iter(|| black_box(run.error_below_order(black_box(&record), f64::INFINITY)))
+        });
+    }
+    group.finish();
+}
+
+fn realize_for_scoring(c: &mut Criterion) {
+    use lpvid_host::pbsid::realize::OrderSweep;
+    let data = rows();
+    let slab = Slab::new(&data, 1, 1, 2).unwrap();
+    let p = 5;
+    let dims = PbsidDims::new(1, 1, 1, p).unwrap();
+    let cols = slab.len() - p + 1;
+    let states = DMatrix::from_fn(4, cols, |i, k| {
+        (0..p)
+            .map(|j| ((i * 5 + j * 2) as f64 * 0.41).cos() * slab.y(k + j)[0])
+            .sum::<f64>()
+    });
+    let sweep = OrderSweep::new(&dims, &slab, &states, true).unwrap();
+    let mut group = c.benchmark_group("realize_for_scoring");
+    for n in [2usize, 4] {
+        assert!(sweep
+            .realize_scorer(n)
+            .unwrap()
+            .same_packing(&bpdn::FreeRun::new(&sweep.realize(n).unwrap())));
+        group.bench_function(BenchmarkId::new("realize_scorer", n), |b| {
+            b.iter(|| black_box(sweep.realize_scorer(black_box(n)).unwrap()))
+        });
+        group.bench_function(
+            BenchmarkId::new("realize + FreeRun::new (through LpvSs)", n),
+            |b| b.iter(|| black_box(bpdn::FreeRun::new(&sweep.realize(black_box(n)).unwrap()))),
+        );
+    }
+    group.finish();
+}
+
+criterion_group!(bpdn_bench, compare, scorer, realize_for_scoring);
 criterion_main!(bpdn_bench);

@@ -69,7 +69,6 @@
 //! the sparse estimate chose 3-10 in about a quarter of them).
 
 use std::cell::RefCell;
-use std::collections::HashMap;
 use std::ops::ControlFlow;
 use std::rc::Rc;
 
@@ -127,7 +126,9 @@ pub struct LazyGram {
     n: usize,
     q: usize,
     diag: Vec<f64>,
-    cache: RefCell<HashMap<usize, Rc<Vec<f64>>>>,
+    /// The Gram columns evaluated so far, by index (a slot per regressor: no hashing on
+    /// the solver's every `get`).
+    cache: RefCell<Vec<Option<Rc<Vec<f64>>>>>,
 }
 
 impl LazyGram {
@@ -186,7 +187,7 @@ impl LazyGram {
                 n,
                 q: qf,
                 diag,
-                cache: RefCell::new(HashMap::new()),
+                cache: RefCell::new(vec![None; qf]),
             },
             y,
         ))
@@ -213,7 +214,7 @@ impl LazyGram {
     }
 
     fn column(&self, j: usize) -> Rc<Vec<f64>> {
-        if let Some(c) = self.cache.borrow().get(&j) {
+        if let Some(c) = &self.cache.borrow()[j] {
             return c.clone();
         }
         let rj = self.row(j);
@@ -221,7 +222,7 @@ impl LazyGram {
             .map(|k| self.row(k).iter().zip(rj).map(|(a, b)| a * b).sum())
             .collect();
         let col = Rc::new(col);
-        self.cache.borrow_mut().insert(j, col.clone());
+        self.cache.borrow_mut()[j] = Some(col.clone());
         col
     }
 
@@ -271,12 +272,14 @@ impl SymMatrix<f64> for LazyGram {
         if i == j {
             return self.diag[i];
         }
-        if let Some(c) = self.cache.borrow().get(&j) {
+        let cache = self.cache.borrow();
+        if let Some(c) = &cache[j] {
             return c[i];
         }
-        if let Some(c) = self.cache.borrow().get(&i) {
+        if let Some(c) = &cache[i] {
             return c[j];
         }
+        drop(cache);
         self.column(j)[i]
     }
     fn add_scaled_column(&self, j: usize, alpha: f64, out: &mut [f64]) {
@@ -435,7 +438,10 @@ pub fn gamma_kz(
     let (p, l) = (dims.p, dims.l);
     let qf = g.q;
     let n = g.n;
-    let mut out = DMatrix::zeros(f * l, n + 1);
+    // accumulated row by row (row-major, n + 1 columns), each entry summed over the
+    // active columns in ascending order as before, then laid out as the matrix
+    let w = n + 1;
+    let mut acc = vec![0.0; f * l * w];
     let offsets: Vec<usize> = (1..=p + 1).map(|j| dims.block_offset(j)).collect();
     for col in (0..offsets[p]).filter(|&a| (0..l).any(|o| theta[o * qf + a] != 0.0)) {
         // column `col` of C K^p lies in block b (1-based) at offset `off` inside the block
@@ -451,14 +457,15 @@ pub fn gamma_kz(
             let zr = g.row(zrow);
             for (o, c) in coef.iter().enumerate() {
                 let row = (i - 1) * l + o;
-                for (k, v) in zr.iter().enumerate() {
-                    out[(row, k)] += c * v;
+                let (dst, last) = acc[row * w..(row + 1) * w].split_at_mut(n);
+                for (d, v) in dst.iter_mut().zip(zr) {
+                    *d += c * v;
                 }
-                out[(row, n)] += c * z_last[zrow];
+                last[0] += c * z_last[zrow];
             }
         }
     }
-    out
+    DMatrix::from_row_slice(f * l, w, &acc)
 }
 
 /// The scaled samples of `slab` as signals (inputs, outputs, scheduling mu[1..]).
@@ -562,6 +569,52 @@ pub struct FreeRun {
 }
 
 impl FreeRun {
+    /// Pack the model of [`LpvSs::from_abk`]`(abk, [c], [d])` (one C, one D) straight from
+    /// its least-squares solution `abk` = [A^(1) B^(1) K^(1) | ...]: the same entries as
+    /// [`FreeRun::new`] of that model.
+    pub fn from_abk(abk: &DMatrix<f64>, c: &DMatrix<f64>, d: &DMatrix<f64>) -> Self {
+        let (n, l, r) = (abk.nrows(), c.nrows(), d.ncols());
+        let wb = n + r + l;
+        let m = abk.ncols() / wb;
+        let w = m * (n + r);
+        let mut state_t = Vec::with_capacity(n * w);
+        for s in 0..m {
+            for col in 0..n + r {
+                state_t.extend_from_slice(abk.column(s * wb + col).as_slice());
+            }
+        }
+        let wo = n + r;
+        let mut output = vec![0.0; l * wo];
+        for j in 0..l {
+            let row = &mut output[j * wo..(j + 1) * wo];
+            for a in 0..n {
+                row[a] = c[(j, a)];
+            }
+            for a in 0..r {
+                row[n + a] = d[(j, a)];
+            }
+        }
+        FreeRun {
+            n,
+            r,
+            l,
+            m,
+            state_t,
+            output,
+            nc: 1,
+            nd: 1,
+        }
+    }
+
+    /// Whether two packed models are the same to the bit (sizes and every entry).
+    pub fn same_packing(&self, other: &FreeRun) -> bool {
+        let bits = |v: &[f64]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+        (self.n, self.r, self.l, self.m, self.nc, self.nd)
+            == (other.n, other.r, other.l, other.m, other.nc, other.nd)
+            && bits(&self.state_t) == bits(&other.state_t)
+            && bits(&self.output) == bits(&other.output)
+    }
+
     /// Pack `model`.
     pub fn new(model: &LpvSs) -> Self {
         let (n, r, l, m) = (model.n(), model.r(), model.l(), model.m());
@@ -611,6 +664,37 @@ impl FreeRun {
     /// The squared free-run error on `rec` from x0 = 0, +inf once it reaches `bound` or
     /// the state diverges (non-finite or beyond 1e150, as `LpvSs::simulate` marks it).
     pub fn error_below(&self, rec: &ScoredRecord, bound: f64) -> f64 {
+        assert!(
+            rec.s + 1 == self.m && rec.r == self.r && rec.l == self.l,
+            "record and model differ in size"
+        );
+        if self.nc == 1 && self.nd == 1 {
+            match (self.n, self.r) {
+                (1, 1) => return self.run_inputs::<1, 1>(rec, bound),
+                (2, 1) => return self.run_inputs::<2, 1>(rec, bound),
+                (3, 1) => return self.run_inputs::<3, 1>(rec, bound),
+                (4, 1) => return self.run_inputs::<4, 1>(rec, bound),
+                (5, 1) => return self.run_inputs::<5, 1>(rec, bound),
+                (6, 1) => return self.run_inputs::<6, 1>(rec, bound),
+                (7, 1) => return self.run_inputs::<7, 1>(rec, bound),
+                (8, 1) => return self.run_inputs::<8, 1>(rec, bound),
+                (1, 2) => return self.run_inputs::<1, 2>(rec, bound),
+                (2, 2) => return self.run_inputs::<2, 2>(rec, bound),
+                (3, 2) => return self.run_inputs::<3, 2>(rec, bound),
+                (4, 2) => return self.run_inputs::<4, 2>(rec, bound),
+                (5, 2) => return self.run_inputs::<5, 2>(rec, bound),
+                (6, 2) => return self.run_inputs::<6, 2>(rec, bound),
+                (7, 2) => return self.run_inputs::<7, 2>(rec, bound),
+                (8, 2) => return self.run_inputs::<8, 2>(rec, bound),
+                _ => {}
+            }
+        }
+        self.error_below_order(rec, bound)
+    }
+
+    /// [`FreeRun::error_below`] without the kernel for one C and D and one or two inputs
+    /// (the scorer of before; `benches/bpdn.rs` runs both).
+    pub fn error_below_order(&self, rec: &ScoredRecord, bound: f64) -> f64 {
         assert!(
             rec.s + 1 == self.m && rec.r == self.r && rec.l == self.l,
             "record and model differ in size"
@@ -687,6 +771,77 @@ impl FreeRun {
             if diverged(&x) && k + 1 < samples {
                 return f64::INFINITY;
             }
+        }
+        finite_or_infinity(err)
+    }
+
+    /// [`FreeRun::run_fixed`] for a model with one C and one D (BPDN-SV's realizations) and
+    /// R inputs, both fixed at compile time: the weight 1 of the single C and D and of mu_0
+    /// is left out (1 x is x, to the bit), the record's row is read at fixed offsets, and no
+    /// scheduling vector is copied; the same products summed in the same order.
+    fn run_inputs<const N: usize, const R: usize>(&self, rec: &ScoredRecord, bound: f64) -> f64 {
+        let (l, m, s) = (self.l, self.m, rec.s);
+        let cols: Vec<[f64; N]> = self
+            .state_t
+            .chunks_exact(N)
+            .map(|c| *lanes::<N>(c))
+            .collect();
+        assert_eq!(cols.len(), m * (N + R), "state matrix of the model's size");
+        let (first, rest) = cols.split_at(N + R);
+        // output row j: [C_j D_j] at j (N + R)
+        let wo = N + R;
+        let mut x = [0.0; N];
+        let mut err = 0.0;
+        // whether the last state update diverged: tested with the bound at the next sample,
+        // so a divergence in the update after the last sample is not counted (as in `run`)
+        let mut bad = false;
+        for row in rec.rows.chunks_exact(s + R + l) {
+            let (sched, rest_row) = row.split_at(s);
+            let (u, y) = rest_row.split_at(R);
+            let u: &[f64; R] = u.try_into().expect("R inputs");
+            for (j, yj) in y.iter().enumerate() {
+                let (c, d) = self.output[j * wo..(j + 1) * wo].split_at(N);
+                let mut e = -0.0;
+                for a in 0..N {
+                    e += c[a] * x[a];
+                }
+                for a in 0..R {
+                    e += d[a] * u[a];
+                }
+                let e = e - yj;
+                err += e * e;
+            }
+            if (err >= bound) | bad {
+                return f64::INFINITY;
+            }
+            // block 0 (mu_0 = 1), then blocks 1..m weighted by the scheduling signals
+            let mut acc = [-0.0; N];
+            for (col, &xv) in first[..N].iter().zip(&x) {
+                for (sa, a) in acc.iter_mut().zip(col) {
+                    *sa += a * xv;
+                }
+            }
+            for (col, &uv) in first[N..].iter().zip(u) {
+                for (sa, a) in acc.iter_mut().zip(col) {
+                    *sa += a * uv;
+                }
+            }
+            for (blk, &wi) in rest.chunks_exact(N + R).zip(sched) {
+                for (col, &xv) in blk[..N].iter().zip(&x) {
+                    let v = wi * xv;
+                    for (sa, a) in acc.iter_mut().zip(col) {
+                        *sa += a * v;
+                    }
+                }
+                for (col, &uv) in blk[N..].iter().zip(u) {
+                    let v = wi * uv;
+                    for (sa, a) in acc.iter_mut().zip(col) {
+                        *sa += a * v;
+                    }
+                }
+            }
+            x = acc;
+            bad = diverged(&x);
         }
         finite_or_infinity(err)
     }
@@ -956,10 +1111,10 @@ pub fn select_by_simulation_with(
         // first n rows of x); a point whose Grams fail realizes at no order
         let sweep = OrderSweep::new(dims, slab, &x.rows(0, nmax).into_owned(), feedthrough);
         for &n in &orders {
-            let Ok(model) = sweep
+            let Ok(run) = sweep
                 .as_ref()
                 .map_err(|_| ())
-                .and_then(|s| s.realize(n).map_err(|_| ()))
+                .and_then(|s| s.realize_scorer(n).map_err(|_| ()))
             else {
                 continue;
             };
@@ -971,7 +1126,7 @@ pub fn select_by_simulation_with(
                 Some(b) if val.is_some() => b.score,
                 Some(b) => nl * ((b.score - penalty) / nl).exp(),
             } * (1.0 + 1e-9);
-            let v = FreeRun::new(&model).error_below(&record, bound);
+            let v = run.error_below(&record, bound);
             let score = if val.is_some() {
                 v
             } else {
@@ -1076,41 +1231,50 @@ mod tests {
         }
     }
 
-    /// The scorer compiled for a fixed order gives the general scorer's bits, on models of
-    /// orders 1..=9 with one and two C and D matrices (B3: two inputs and outputs).
+    /// The scorers compiled for a fixed order (and for one C, one D and one or two inputs)
+    /// give the general scorer's bits, on models of orders 1..=9 with one and two C and D
+    /// matrices, on B3 (two inputs and outputs) and B2 (one of each).
     #[test]
     fn fixed_order_scorer_is_the_general_one() {
         let b3 = crate::systems::b3(120, 3);
-        let truth = crate::systems::b3_truth();
-        let (r, l, m) = (truth.r(), truth.l(), truth.m());
-        let record = ScoredRecord::new(&b3.train, m);
-        for n in 1..=9 {
-            for varying in [false, true] {
-                let mut model = truth.clone();
-                let f = |i: usize, j: usize, s: usize| {
-                    0.9 / n as f64 * ((i * 7 + j * 3 + s * 5 + n) as f64).sin()
-                };
-                model.a = (0..m)
-                    .map(|s| DMatrix::from_fn(n, n, |i, j| f(i, j, s)))
-                    .collect();
-                model.b = (0..m)
-                    .map(|s| DMatrix::from_fn(n, r, |i, j| f(i + 11, j, s)))
-                    .collect();
-                model.k = (0..m).map(|_| DMatrix::zeros(n, l)).collect();
-                let k = if varying { m } else { 1 };
-                model.c = (0..k)
-                    .map(|s| DMatrix::from_fn(l, n, |i, j| f(i + 5, j, s)))
-                    .collect();
-                model.d = (0..k)
-                    .map(|s| DMatrix::from_fn(l, r, |i, j| f(i + 9, j, s)))
-                    .collect();
-                let run = FreeRun::new(&model);
-                let fixed = run.error_below(&record, f64::INFINITY);
-                let general = run.run(&record, f64::INFINITY, vec![0.0; n]);
-                assert!(fixed.is_finite(), "n = {n}");
-                assert_eq!(fixed.to_bits(), general.to_bits(), "n = {n}, {varying}");
-                let half = run.error_below(&record, 0.5 * fixed);
-                assert_eq!(half, f64::INFINITY, "n = {n}");
+        let b2 = crate::systems::b2(75, 25.0, 3);
+        for (truth, sig) in [
+            (crate::systems::b3_truth(), &b3.train),
+            (crate::systems::b2_truth(), &b2.train),
+        ] {
+            let (r, l, m) = (truth.r(), truth.l(), truth.m());
+            let record = ScoredRecord::new(sig, m);
+            for n in 1..=9 {
+                for varying in [false, true] {
+                    let mut model = truth.clone();
+                    let f = |i: usize, j: usize, s: usize| {
+                        0.9 / n as f64 * ((i * 7 + j * 3 + s * 5 + n) as f64).sin()
+                    };
+                    model.a = (0..m)
+                        .map(|s| DMatrix::from_fn(n, n, |i, j| f(i, j, s)))
+                        .collect();
+                    model.b = (0..m)
+                        .map(|s| DMatrix::from_fn(n, r, |i, j| f(i + 11, j, s)))
+                        .collect();
+                    model.k = (0..m).map(|_| DMatrix::zeros(n, l)).collect();
+                    let k = if varying { m } else { 1 };
+                    model.c = (0..k)
+                        .map(|s| DMatrix::from_fn(l, n, |i, j| f(i + 5, j, s)))
+                        .collect();
+                    model.d = (0..k)
+                        .map(|s| DMatrix::from_fn(l, r, |i, j| f(i + 9, j, s)))
+                        .collect();
+                    let run = FreeRun::new(&model);
+                    let fixed = run.error_below(&record, f64::INFINITY);
+                    let order = run.error_below_order(&record, f64::INFINITY);
+                    let general = run.run(&record, f64::INFINITY, vec![0.0; n]);
+                    assert!(fixed.is_finite(), "n = {n}");
+                    assert_eq!(fixed.to_bits(), general.to_bits(), "n = {n}, {varying}");
+                    assert_eq!(order.to_bits(), general.to_bits(), "n = {n}, {varying}");
+                    let half = run.error_below(&record, 0.5 * fixed);
+                    assert_eq!(half, f64::INFINITY, "n = {n}");
+                    assert_eq!(run.error_below_order(&record, 0.5 * fixed), f64::INFINITY);
+                }
             }
         }
     }

@@ -6,6 +6,7 @@
 use lpvid::{packed_len, Gram, PbsidDims, Samples, Slab};
 use nalgebra::DMatrix;
 
+use super::bpdn::FreeRun;
 use super::error::FitError;
 use crate::linalg::{min_norm_from_normal, sym_eig, LinalgError};
 use crate::lpvss::LpvSs;
@@ -324,6 +325,9 @@ fn solve_normal(s_ff: &DMatrix<f64>, s_fy: &DMatrix<f64>) -> Result<DMatrix<f64>
     Ok(min_norm_from_normal(s_ff, &b, 1e-12)?.0)
 }
 
+/// [A^(1) B^(1) K^(1) | ...], C and D of one order, as solved by [`OrderSweep`].
+type Solved = (DMatrix<f64>, DMatrix<f64>, DMatrix<f64>);
+
 /// Section 4.3 for every order n <= `nmax` of one state sequence (BPDN-SV realizes each
 /// path point at all candidate orders): the states of order n are the first n rows of
 /// those of order `nmax` (eq. (16), U^T Gamma K Z), so both normal equations of every
@@ -388,6 +392,22 @@ impl OrderSweep {
 
     /// The model of order `n` (1 <= n <= nmax).
     pub fn realize(&self, n: usize) -> Result<LpvSs, FitError> {
+        let (abk, c, d) = self.solve_order(n)?;
+        Ok(LpvSs::from_abk(&abk, vec![c], vec![d]))
+    }
+
+    /// The model of order `n` as [`OrderSweep::realize`] gives it, packed for the free-run
+    /// scorer without the intermediate `LpvSs` (the same numbers: BPDN-SV scores every
+    /// order of every path point with it).
+    pub fn realize_scorer(&self, n: usize) -> Result<FreeRun, FitError> {
+        let (abk, c, d) = self.solve_order(n)?;
+        Ok(FreeRun::from_abk(&abk, &c, &d))
+    }
+
+    /// [A^(1) B^(1) K^(1) | ...], C and D of order `n`: the two normal equations formed from
+    /// the Grams and solved. The sums are those of the combinations below, in the same order
+    /// (read from the Grams' column-major storage).
+    fn solve_order(&self, n: usize) -> Result<Solved, FitError> {
         let (nmax, r, l, m, r_ft) = (self.nmax, self.r, self.l, self.m, self.r_ft);
         assert!(n <= nmax, "order beyond the states");
         // output equation: regressors x_1..x_n and u (feedthrough), targets y
@@ -402,32 +422,43 @@ impl OrderSweep {
         } else {
             DMatrix::zeros(l, r)
         };
-        // xi = [x; u; e] of order n as combinations of v = [x^(nmax); u; y]
+        // xi = [x; u; e] of order n as combinations of v = [x^(nmax); u; y]: entry alpha
+        // is the terms start[alpha]..start[alpha + 1] of (index into v, coefficient)
         let dv = nmax + r + l;
         let nxi = n + r + l;
-        let mut comb: Vec<Vec<(usize, f64)>> = Vec::with_capacity(nxi);
+        let mut terms: Vec<(usize, f64)> = Vec::with_capacity(n + r + l * (1 + n + r));
+        let mut start = Vec::with_capacity(nxi + 1);
         for a in 0..n {
-            comb.push(vec![(a, 1.0)]);
+            start.push(terms.len());
+            terms.push((a, 1.0));
         }
         for j in 0..r {
-            comb.push(vec![(nmax + j, 1.0)]);
+            start.push(terms.len());
+            terms.push((nmax + j, 1.0));
         }
         for o in 0..l {
-            let mut e = vec![(nmax + r + o, 1.0)];
-            e.extend((0..n).map(|a| (a, -c[(o, a)])));
-            e.extend((0..r).map(|j| (nmax + j, -d[(o, j)])));
-            comb.push(e);
+            start.push(terms.len());
+            terms.push((nmax + r + o, 1.0));
+            terms.extend((0..n).map(|a| (a, -c[(o, a)])));
+            terms.extend((0..r).map(|j| (nmax + j, -d[(o, j)])));
         }
+        start.push(terms.len());
+        let comb = |alpha: usize| &terms[start[alpha]..start[alpha + 1]];
+        let g2 = self.g2.as_slice();
+        let ld = self.g2.nrows();
         let k2 = m * nxi;
         let mut s2_ff = DMatrix::zeros(k2, k2);
         for bj in 0..k2 {
             let (j, beta) = (bj / nxi, bj % nxi);
+            let cb_terms = comb(beta);
             for ai in 0..=bj {
                 let (i, alpha) = (ai / nxi, ai % nxi);
                 let mut s = 0.0;
-                for &(a, ca) in &comb[alpha] {
-                    for &(b, cb) in &comb[beta] {
-                        s += ca * cb * self.g2[(i * dv + a, j * dv + b)];
+                for &(a, ca) in comb(alpha) {
+                    let row = i * dv + a;
+                    for &(b, cb) in cb_terms {
+                        // g2[(row, j dv + b)], column-major
+                        s += ca * cb * g2[(j * dv + b) * ld + row];
                     }
                 }
                 s2_ff[(ai, bj)] = s;
@@ -436,19 +467,56 @@ impl OrderSweep {
         }
         let s2_fy = DMatrix::from_fn(k2, n, |ai, t| {
             let (i, alpha) = (ai / nxi, ai % nxi);
-            comb[alpha]
+            let col = &g2[(m * dv + t) * ld..(m * dv + t + 1) * ld];
+            comb(alpha)
                 .iter()
-                .map(|&(a, ca)| ca * self.g2[(i * dv + a, m * dv + t)])
+                .map(|&(a, ca)| ca * col[i * dv + a])
                 .sum()
         });
         let abk = solve_normal(&s2_ff, &s2_fy)?;
-        Ok(LpvSs::from_abk(&abk, vec![c], vec![d]))
+        Ok((abk, c, d))
     }
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The scorer's packing straight from the least-squares solution equals the packing of
+    /// the realized model, and so does its score to the bit (B2 record, orders 1..=4, with
+    /// and without feedthrough).
+    #[test]
+    fn scorer_packing_equals_the_model_packing() {
+        let e = crate::systems::b2(75, 25.0, 5);
+        let t = &e.train;
+        let rows: Vec<f64> = (0..t.len())
+            .flat_map(|k| [t.u[(k, 0)], t.y[(k, 0)], 1.0, t.p[(k, 0)]])
+            .collect();
+        let slab = Slab::new(&rows, 1, 1, 2).unwrap();
+        let p = 4;
+        let dims = PbsidDims::new(1, 1, 1, p).unwrap();
+        let cols = slab.len() - p + 1;
+        let states = DMatrix::from_fn(4, cols, |i, k| {
+            (0..p)
+                .map(|j| ((i * 5 + j * 2) as f64 * 0.41).cos() * slab.y(k + j)[0])
+                .sum::<f64>()
+        });
+        let record = crate::pbsid::bpdn::ScoredRecord::new(t, 2);
+        for feedthrough in [true, false] {
+            let sweep = OrderSweep::new(&dims, &slab, &states, feedthrough).unwrap();
+            for n in 1..=4 {
+                let model = sweep.realize(n).unwrap();
+                let a = FreeRun::new(&model);
+                let b = sweep.realize_scorer(n).unwrap();
+                let (sa, sb) = (
+                    a.error_below(&record, f64::INFINITY),
+                    b.error_below(&record, f64::INFINITY),
+                );
+                assert_eq!(sa.to_bits(), sb.to_bits(), "n = {n}, {feedthrough}");
+                assert!(a.same_packing(&b), "n = {n}, {feedthrough}");
+            }
+        }
+    }
 
     /// Every order of an [`OrderSweep`] equals [`realize_from_states`] on the first n rows
     /// of the same states (B2 record, states of a p = 4 regression with random-like
