@@ -482,16 +482,22 @@ impl OrderSweep {
 mod tests {
     use super::*;
 
+    /// The B2 training record (75 samples, 25 dB) and its sample rows [u, y, 1, p] for a
+    /// slab with mu = [1, p].
+    fn b2_rows() -> (crate::lpvss::Signals, Vec<f64>) {
+        let t = crate::systems::b2(75, 25.0, 5).train;
+        let rows = (0..t.len())
+            .flat_map(|k| [t.u[(k, 0)], t.y[(k, 0)], 1.0, t.p[(k, 0)]])
+            .collect();
+        (t, rows)
+    }
+
     /// The scorer's packing straight from the least-squares solution equals the packing of
     /// the realized model, and so does its score to the bit (B2 record, orders 1..=4, with
     /// and without feedthrough).
     #[test]
     fn scorer_packing_equals_the_model_packing() {
-        let e = crate::systems::b2(75, 25.0, 5);
-        let t = &e.train;
-        let rows: Vec<f64> = (0..t.len())
-            .flat_map(|k| [t.u[(k, 0)], t.y[(k, 0)], 1.0, t.p[(k, 0)]])
-            .collect();
+        let (t, rows) = b2_rows();
         let slab = Slab::new(&rows, 1, 1, 2).unwrap();
         let p = 4;
         let dims = PbsidDims::new(1, 1, 1, p).unwrap();
@@ -501,7 +507,7 @@ mod tests {
                 .map(|j| ((i * 5 + j * 2) as f64 * 0.41).cos() * slab.y(k + j)[0])
                 .sum::<f64>()
         });
-        let record = crate::pbsid::bpdn::ScoredRecord::new(t, 2);
+        let record = crate::pbsid::bpdn::ScoredRecord::new(&t, 2);
         for feedthrough in [true, false] {
             let sweep = OrderSweep::new(&dims, &slab, &states, feedthrough).unwrap();
             for n in 1..=4 {
@@ -523,11 +529,7 @@ mod tests {
     /// mixing, with and without feedthrough), to 1e-9 relative.
     #[test]
     fn orders_share_one_gram() {
-        let e = crate::systems::b2(75, 25.0, 5);
-        let t = &e.train;
-        let rows: Vec<f64> = (0..t.len())
-            .flat_map(|k| [t.u[(k, 0)], t.y[(k, 0)], 1.0, t.p[(k, 0)]])
-            .collect();
+        let (_, rows) = b2_rows();
         let slab = Slab::new(&rows, 1, 1, 2).unwrap();
         let p = 4;
         let dims = PbsidDims::new(1, 1, 1, p).unwrap();
