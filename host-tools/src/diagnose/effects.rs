@@ -441,6 +441,7 @@ pub fn refined_null(spec: &Spec) -> Spec {
     Spec {
         refined: true,
         nested_in: None,
+        latent: None,
         ..spec.clone()
     }
 }

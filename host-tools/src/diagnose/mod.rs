@@ -26,6 +26,7 @@ pub mod catalogue;
 pub mod effects;
 pub mod encompass;
 mod judge;
+pub mod latent;
 pub mod memory;
 pub mod output;
 pub mod plants;

@@ -385,6 +385,7 @@ mod tests {
             arx: None,
             refined: false,
             nested_in: None,
+            latent: None,
         }
     }
 

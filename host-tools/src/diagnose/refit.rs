@@ -30,6 +30,7 @@ use crate::data::{DataError, Dataset};
 use crate::lpvss::{scheduled, LpvSs, Signals};
 use crate::model::{describe, Factor, ModelFile, ModelKind, SignalMap};
 use crate::pbsid::{self, Order, PbsidOptions, Reg};
+use crate::simulate::Mode;
 
 /// Why a refit failed (recorded per candidate in the report; the diagnosis goes on).
 #[derive(Debug, thiserror::Error)]
@@ -97,6 +98,19 @@ pub struct Spec {
     /// scheduled output, or A^(i), B^(i) of added scheduling functions) started at zero, and
     /// the whole refined again. None: fitted from its own PBSID estimate.
     pub nested_in: Option<Box<Spec>>,
+    /// Fit on the scheduling sequence a noisy sensor hid ([`fit_latent`]): None for the
+    /// measured scheduling columns as they are.
+    pub latent: Option<LatentSpec>,
+}
+
+/// The noisy scheduling columns of a [`Spec`] fitted by [`fit_latent`].
+#[derive(Debug, Clone, PartialEq)]
+pub struct LatentSpec {
+    /// Data column names of the scheduling signals to re-estimate, each with its sensor
+    /// noise variance.
+    pub columns: Vec<(String, f64)>,
+    /// Most rounds of estimate-and-refit.
+    pub rounds: usize,
 }
 
 /// The noise model of a [`Spec`].
@@ -218,6 +232,7 @@ impl Spec {
                     }),
                     refined: false,
                     nested_in: None,
+                    latent: None,
                 };
                 Ok(spec)
             }
@@ -296,6 +311,7 @@ impl Spec {
                     arx: None,
                     refined: false,
                     nested_in: None,
+                    latent: None,
                 })
             }
         }
@@ -320,6 +336,9 @@ fn select_columns(m: &DMatrix<f64>, cols: &[usize]) -> DMatrix<f64> {
 pub fn fit_spec(spec: &Spec, train: &Dataset, base_fit: &Value) -> Result<Fitted, RefitError> {
     if let Some(a) = &spec.arx {
         return fit_arx(spec, a, train, base_fit);
+    }
+    if let Some(l) = &spec.latent {
+        return fit_latent(spec, l, train, base_fit);
     }
     if let Some(ns) = &spec.nested_in {
         return fit_nested(spec, ns, train, base_fit);
@@ -424,6 +443,107 @@ pub fn fit_spec(spec: &Spec, train: &Dataset, base_fit: &Value) -> Result<Fitted
         noise_orders,
         sigma_p: None,
     })
+}
+
+/// Scheduling-noise in the state-space structure (issue 14): the structure fitted on the
+/// scheduling sequence a noisy sensor hid ([`super::latent`]). The structure is fitted on the
+/// measured p~, then for up to `rounds` rounds the MAP sequence p^ of the noisy columns given
+/// that model's free run (its output-error variance from the training data) is estimated and
+/// the structure refitted on p^; the rounds stop early when a round changes p^ by less than 1 % of
+/// the first round's move. The model reads the plain columns: it describes the plant's response to the
+/// true p (as the BC-IV path's LPV-ARX model does), so it is judged on held-out data as any
+/// other refit. The `fit` record gains `scheduling_estimate`.
+pub fn fit_latent(
+    spec: &Spec,
+    latent: &LatentSpec,
+    train: &Dataset,
+    base_fit: &Value,
+) -> Result<Fitted, RefitError> {
+    use super::latent::{map_scheduling, NoisyColumn};
+    let inner = Spec {
+        latent: None,
+        ..spec.clone()
+    };
+    let mut fitted = fit_spec(&inner, train, base_fit)?;
+    let cols = latent
+        .columns
+        .iter()
+        .map(|(name, var)| {
+            train
+                .names
+                .iter()
+                .position(|c| c == name)
+                .map(|col| NoisyColumn {
+                    col,
+                    noise_var: *var,
+                })
+                .ok_or_else(|| {
+                    RefitError::Unsupported(format!("no scheduling column {name} to re-estimate"))
+                })
+        })
+        .collect::<Result<Vec<_>, _>>()?;
+    let mut data = train.clone();
+    let mut last: Option<super::latent::MapEstimate> = None;
+    let mut first_move: Option<f64> = None;
+    let mut rounds = 0;
+    for _ in 0..latent.rounds {
+        let (y, yh) = crate::simulate::simulate(&fitted.model, train, Mode::FreeRun)?;
+        let n = y.nrows().max(1) as f64;
+        let var: Vec<f64> = (0..y.ncols())
+            .map(|j| {
+                let v = (0..y.nrows())
+                    .map(|i| (y[(i, j)] - yh[(i, j)]).powi(2))
+                    .sum::<f64>()
+                    / n;
+                v.max(1e-12 * y.column(j).iter().map(|a| a * a).sum::<f64>() / n)
+                    .max(1e-300)
+            })
+            .collect();
+        let Some(est) = map_scheduling(&fitted.model, train, &cols, &var, 6) else {
+            if last.is_none() {
+                return Err(RefitError::Unsupported(
+                    "the scheduling sequence could not be estimated from the outputs (the free run fails, p does not move it, or the record is too long for the band)".into(),
+                ));
+            }
+            break;
+        };
+        // RMS (per sample, over the columns) of this round's change of p^
+        let change = last.as_ref().map(|prev| {
+            let d: f64 = prev
+                .columns
+                .iter()
+                .zip(&est.columns)
+                .flat_map(|(a, b)| a.iter().zip(b).map(|(x, z)| (x - z) * (x - z)))
+                .sum();
+            (d / train.len().max(1) as f64).sqrt()
+        });
+        for (c, col) in cols.iter().zip(&est.columns) {
+            data.cols[c.col] = col.clone();
+        }
+        fitted = fit_spec(&inner, &data, base_fit)?;
+        rounds += 1;
+        let moved = est.moved_rms.iter().map(|v| v * v).sum::<f64>().sqrt();
+        first_move.get_or_insert(moved);
+        last = Some(est);
+        if change.zip(first_move).is_some_and(|(c, f)| c <= 0.01 * f) {
+            break;
+        }
+    }
+    let est = last.expect("at least one round ran");
+    if let Value::Object(rec) = &mut fitted.model.fit {
+        rec.insert(
+            "scheduling_estimate".into(),
+            json!({
+                "method": "MAP sequence of the scheduling columns given the model's free run, the structure refitted on it (diagnose: scheduling-noise)",
+                "columns": latent.columns.iter().map(|(c, _)| c.clone()).collect::<Vec<_>>(),
+                "sensor_noise_std": latent.columns.iter().map(|(_, v)| v.sqrt()).collect::<Vec<_>>(),
+                "rounds": rounds,
+                "memory_samples": est.memory,
+                "moved_rms": est.moved_rms,
+            }),
+        );
+    }
+    Ok(fitted)
 }
 
 /// A structure refined from the refined fit of the structure it is nested in (issue 14; the
