@@ -23,9 +23,10 @@ use crate::simulate::{simulate, Mode};
 /// Longest memory (samples) the band keeps; a model that remembers p longer is cut here.
 pub const MAX_MEMORY: usize = 120;
 
-/// Largest band storage (samples x outputs x band width) a sequence estimate may use; longer
-/// records are not estimated (the caller reports the variant as not tried).
-pub const MAX_BAND_ENTRIES: usize = 40_000_000;
+/// Largest band storage (samples x outputs x band width, 32 MB) a sequence estimate may use:
+/// each Gauss-Newton step costs (W + 1) free runs per column, so about 3 * 10^4 samples at the
+/// longest memory; longer records are not estimated (the variant fails with the reason).
+pub const MAX_BAND_ENTRIES: usize = 4_000_000;
 
 /// One scheduling column to estimate: its index in the dataset and the sensor noise variance.
 #[derive(Debug, Clone, Copy)]
@@ -162,7 +163,12 @@ pub fn map_scheduling(
 ) -> Option<MapEstimate> {
     let n = train.len();
     let s = cols.len();
-    if n < 8 || s == 0 || cols.iter().any(|c| c.noise_var.is_nan() || c.noise_var <= 0.0) {
+    if n < 8
+        || s == 0
+        || cols
+            .iter()
+            .any(|c| c.noise_var.is_nan() || c.noise_var <= 0.0)
+    {
         return None;
     }
     let mut ds = train.clone();
