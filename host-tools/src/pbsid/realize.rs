@@ -547,15 +547,7 @@ impl OrderSweep {
                 rows[(m * dv + a) * nb + k] = xn[a];
             }
         }
-        let row = |a: usize| &rows[a * nb..(a + 1) * nb];
-        let mut g2 = DMatrix::zeros(d2, d2);
-        for b in 0..d2 {
-            for a in 0..=b {
-                let v = crate::kernel_sweep::dot4(row(a), row(b));
-                g2[(a, b)] = v;
-                g2[(b, a)] = v;
-            }
-        }
+        let g2 = DMatrix::from_vec(d2, d2, crate::kernel_sweep::row_gram(&rows, d2, nb));
         // a non-finite row, or products that overflow, leave a non-finite entry (the
         // core's batch update refuses both)
         if let Some(index) = g2.iter().position(|v| !v.is_finite()) {
