@@ -41,7 +41,7 @@ pub(crate) fn svd_left(w: &DMatrix<f64>) -> Result<(Vec<f64>, DMatrix<f64>), Lin
 
 /// Kernel paper, eq. (15)-(16), on an explicit Gamma K Z (windows 0..=N-p): the SVD from its first
 /// `windows` columns (the regression windows), state candidates U^T Gamma K Z for all.
-pub(crate) fn states_from_gkz(
+pub fn states_from_gkz(
     gkz: &DMatrix<f64>,
     windows: usize,
 ) -> Result<(Vec<f64>, DMatrix<f64>), LinalgError> {
