@@ -77,7 +77,7 @@ use lpvid::window::write_pbsid_regressor;
 use lpvid::{PbsidDims, Samples, Slab};
 use nalgebra::DMatrix;
 
-use super::realize::{states_from_gkz, OrderSweep};
+use super::realize::{states_from_gkz_rows, OrderSweep};
 use crate::linalg::LinalgError;
 use crate::lpvss::{LpvSs, Signals};
 
@@ -435,6 +435,18 @@ pub fn gamma_kz(
     g: &LazyGram,
     z_last: &[f64],
 ) -> DMatrix<f64> {
+    let w = g.n + 1;
+    DMatrix::from_row_slice(f * dims.l, w, &gamma_kz_rows(dims, f, theta, g, z_last))
+}
+
+/// [`gamma_kz`] row-major (f l rows of N - p + 1 values), as BPDN-SV's path points use it.
+pub fn gamma_kz_rows(
+    dims: &PbsidDims,
+    f: usize,
+    theta: &[f64],
+    g: &LazyGram,
+    z_last: &[f64],
+) -> Vec<f64> {
     let (p, l) = (dims.p, dims.l);
     let qf = g.q;
     let n = g.n;
@@ -465,7 +477,7 @@ pub fn gamma_kz(
             }
         }
     }
-    DMatrix::from_row_slice(f * l, w, &acc)
+    acc
 }
 
 /// The scaled samples of `slab` as signals (inputs, outputs, scheduling mu[1..]).
@@ -1110,8 +1122,8 @@ pub fn select_by_simulation_with(
         if fit.index == 0 {
             lmax = fit.lambda;
         }
-        let gkz = gamma_kz(dims, f, th, g, &z_last);
-        let (sv, x) = match states_from_gkz(&gkz, windows) {
+        let gkz = gamma_kz_rows(dims, f, th, g, &z_last);
+        let (sv, x) = match states_from_gkz_rows(&gkz, f * l, windows) {
             Ok(v) => v,
             Err(e) => {
                 err_msg = Some(BpdnError::from(e));
@@ -1127,7 +1139,8 @@ pub fn select_by_simulation_with(
         // one pair of Grams for all orders of this point (the states of order n are the
         // first n rows of x); a point whose Grams fail realizes at no order
         let rows = nmax.min(top);
-        let sweep = OrderSweep::new(dims, slab, &x.rows(0, rows).into_owned(), feedthrough);
+        let sweep =
+            OrderSweep::from_rows(dims, slab, &x[..rows * (windows + 1)], rows, feedthrough);
         for &n in orders.iter().filter(|&&n| n <= top) {
             let Ok(run) = sweep
                 .as_ref()
@@ -1160,7 +1173,7 @@ pub fn select_by_simulation_with(
                     active: fit.active,
                     theta: th.to_vec(),
                     sv: sv.clone(),
-                    states: x.clone(),
+                    states: DMatrix::from_row_slice(f * l, windows + 1, &x),
                 });
                 improved = true;
             }
@@ -1218,6 +1231,7 @@ pub fn select_by_simulation_with(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::pbsid::realize::states_from_gkz;
     use nalgebra::DVector;
 
     /// The allocation-free scorer equals the squared free-run error of `LpvSs::simulate` on

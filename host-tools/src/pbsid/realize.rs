@@ -50,6 +50,38 @@ pub fn states_from_gkz(
     Ok((sv, u.transpose() * gkz))
 }
 
+/// [`states_from_gkz`] on a row-major Gamma K Z (`rows` rows of `windows` + 1 values):
+/// the Gram of the regression columns by [`crate::kernel_sweep::dot4`], the states
+/// U^T Gamma K Z row-major, each entry summed over the rows of Gamma K Z in order (the
+/// same values to rounding; BPDN-SV forms these at every path point).
+pub fn states_from_gkz_rows(
+    gkz: &[f64],
+    rows: usize,
+    windows: usize,
+) -> Result<(Vec<f64>, Vec<f64>), LinalgError> {
+    let w = windows + 1;
+    let row = |a: usize| &gkz[a * w..a * w + windows];
+    let mut gram = DMatrix::zeros(rows, rows);
+    for b in 0..rows {
+        for a in 0..=b {
+            let v = crate::kernel_sweep::dot4(row(a), row(b));
+            gram[(a, b)] = v;
+            gram[(b, a)] = v;
+        }
+    }
+    let (sv, u) = svd_left(&gram)?;
+    let mut x = vec![0.0; rows * w];
+    for (i, xi) in x.chunks_exact_mut(w).enumerate() {
+        for j in 0..rows {
+            let c = u[(j, i)];
+            for (d, v) in xi.iter_mut().zip(&gkz[j * w..(j + 1) * w]) {
+                *d += c * v;
+            }
+        }
+    }
+    Ok((sv, x))
+}
+
 /// Kernel paper, section 4.3 with eq. (2), the output equation: C and D from the normal
 /// equations of
 /// y_k = C x_k + D u_k + e_k (regressors [x; u] or [x] without feedthrough).
@@ -517,35 +549,50 @@ impl OrderSweep {
         states: &DMatrix<f64>,
         feedthrough: bool,
     ) -> Result<Self, FitError> {
+        let rows: Vec<f64> = states.transpose().as_slice().to_vec();
+        Self::from_rows(dims, slab, &rows, states.nrows(), feedthrough)
+    }
+
+    /// [`OrderSweep::new`] with the states row-major (`nmax` rows of N - p + 1 values).
+    pub fn from_rows(
+        dims: &PbsidDims,
+        slab: &Slab<'_, f64>,
+        states: &[f64],
+        nmax: usize,
+        feedthrough: bool,
+    ) -> Result<Self, FitError> {
         let (p, r, l, m) = (dims.p, dims.r, dims.l, dims.m());
-        let nmax = states.nrows();
-        let nb = states.ncols() - 1;
+        let ns = states.len() / nmax.max(1);
+        let nb = ns - 1;
         let r_ft = if feedthrough { r } else { 0 };
         let dv = nmax + r + l;
         let d2 = m * dv + nmax;
         // row-major rows over the windows: [mu (x) [x; u; y]; x_{k+1}]
         let mut rows = vec![0.0; d2 * nb];
+        let mut mu = vec![0.0; m * nb];
         let mut unit = true;
         for k in 0..nb {
-            let x = states.column(k);
-            let (u, y, mu) = (slab.u(k + p), slab.y(k + p), slab.mu(k + p));
-            unit &= mu[0] == 1.0;
-            for (i, &w) in mu.iter().enumerate().take(m) {
-                let base = i * dv;
-                for a in 0..nmax {
-                    rows[(base + a) * nb + k] = w * x[a];
-                }
+            let (u, y, muk) = (slab.u(k + p), slab.y(k + p), slab.mu(k + p));
+            unit &= muk[0] == 1.0;
+            for i in 0..m {
+                mu[i * nb + k] = muk[i];
                 for a in 0..r {
-                    rows[(base + nmax + a) * nb + k] = w * u[a];
+                    rows[(i * dv + nmax + a) * nb + k] = muk[i] * u[a];
                 }
                 for a in 0..l {
-                    rows[(base + nmax + r + a) * nb + k] = w * y[a];
+                    rows[(i * dv + nmax + r + a) * nb + k] = muk[i] * y[a];
                 }
             }
-            let xn = states.column(k + 1);
-            for a in 0..nmax {
-                rows[(m * dv + a) * nb + k] = xn[a];
+        }
+        for a in 0..nmax {
+            let xa = &states[a * ns..(a + 1) * ns];
+            for i in 0..m {
+                let dst = &mut rows[(i * dv + a) * nb..(i * dv + a + 1) * nb];
+                for ((d, x), w) in dst.iter_mut().zip(xa).zip(&mu[i * nb..(i + 1) * nb]) {
+                    *d = w * x;
+                }
             }
+            rows[(m * dv + a) * nb..(m * dv + a + 1) * nb].copy_from_slice(&xa[1..]);
         }
         let g2 = DMatrix::from_vec(d2, d2, crate::kernel_sweep::row_gram(&rows, d2, nb));
         // a non-finite row, or products that overflow, leave a non-finite entry (the
@@ -570,9 +617,9 @@ impl OrderSweep {
                 .map(|&a| {
                     (0..nb)
                         .map(|k| {
-                            let (x, u, y) = (states.column(k), slab.u(k + p), slab.y(k + p));
+                            let (u, y) = (slab.u(k + p), slab.y(k + p));
                             if a < nmax {
-                                x[a]
+                                states[a * ns + k]
                             } else if a < nmax + r {
                                 u[a - nmax]
                             } else {
