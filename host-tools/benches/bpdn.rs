@@ -149,6 +149,8 @@ fn realize_for_scoring(c: &mut Criterion) {
 /// Group `order_sweep` (2026-11-27, h24b1): one BPDN-SV path point of B2 (p = 5, training
 /// record of seed 0, the states of a dense [C K^p, D]) realized at every candidate order,
 /// old and new side by side:
+/// - the states of the point: `states row-major` (what BPDN-SV forms now) against `states
+///   column-major` (the nalgebra products before);
 /// - `Grams by dot products` (`OrderSweep::new`) against `Grams by the core's batch update`
 ///   (`OrderSweep::with_core_grams`, the sweep before), states of order 5;
 /// - `orders 1..=5, nested factors` (`realize_scorer`: one Cholesky factor per equation
@@ -159,7 +161,7 @@ fn realize_for_scoring(c: &mut Criterion) {
 ///   against `orders 1..=5` (before: the orders above the rank tie the rank order's score).
 fn order_sweep(c: &mut Criterion) {
     use lpvid::window::write_pbsid_regressor;
-    use lpvid_host::pbsid::realize::{states_from_gkz, OrderSweep};
+    use lpvid_host::pbsid::realize::{states_from_gkz, states_from_gkz_rows, OrderSweep};
     let e = systems::b2(75, 25.0, 0);
     let data = rows();
     let slab = Slab::new(&data, 1, 1, 2).unwrap();
@@ -178,6 +180,24 @@ fn order_sweep(c: &mut Criterion) {
     let (sv, states) = states_from_gkz(&gkz, windows).unwrap();
     assert_eq!(bpdn::numerical_rank(&sv), 5);
     let mut group = c.benchmark_group("order_sweep");
+    group.bench_function(
+        "states row-major (gamma_kz_rows, states_from_gkz_rows)",
+        |b| {
+            b.iter(|| {
+                let gkz = bpdn::gamma_kz_rows(&dims, p, black_box(&dense), &g, &z_last);
+                black_box(states_from_gkz_rows(&gkz, 5, windows).unwrap())
+            })
+        },
+    );
+    group.bench_function(
+        "states column-major (gamma_kz, states_from_gkz; before)",
+        |b| {
+            b.iter(|| {
+                let gkz = bpdn::gamma_kz(&dims, p, black_box(&dense), &g, &z_last);
+                black_box(states_from_gkz(&gkz, windows).unwrap())
+            })
+        },
+    );
     group.bench_function("Grams by dot products", |b| {
         b.iter(|| black_box(OrderSweep::new(&dims, &slab, black_box(&states), true).unwrap()))
     });
