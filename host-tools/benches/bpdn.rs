@@ -16,6 +16,9 @@
 //!   record, states of order 4) packed for the scorer: `realize_scorer` (straight from the
 //!   least-squares solution) against `realize + FreeRun::new` (through `LpvSs`; both form the normal equations the same way).
 //!
+//! - group `order_sweep`: a path point's realizations at every order, old and new side by
+//!   side (see [`order_sweep`]).
+//!
 //! Run: `cargo bench -p lpvid-host --bench bpdn`.
 
 use criterion::{black_box, criterion_group, criterion_main, BenchmarkId, Criterion};
@@ -143,5 +146,116 @@ fn realize_for_scoring(c: &mut Criterion) {
     group.finish();
 }
 
-criterion_group!(bpdn_bench, compare, scorer, realize_for_scoring);
+/// Group `order_sweep` (2026-11-27, h24b1): one BPDN-SV path point of B2 (p = 5, training
+/// record of seed 0, the states of a dense [C K^p, D]) realized at every candidate order,
+/// old and new side by side:
+/// - the states of the point: `states row-major` (what BPDN-SV forms now) against `states
+///   column-major` (the nalgebra products before);
+/// - `Grams by dot products` (`OrderSweep::new`) against `Grams by the core's batch update`
+///   (`OrderSweep::with_core_grams`, the sweep before), states of order 5;
+/// - `orders 1..=5, nested factors` (`realize_scorer`: one Cholesky factor per equation
+///   for all orders) against `orders 1..=5, per order` (`realize_scorer_per_order`: each
+///   order's normal equations formed in the innovation basis and solved on their own);
+/// - at a point whose Gamma K Z has rank 1 (a [C K^p, D] with one active column in the
+///   last lag block), `orders 1..=rank realized and scored` (what BPDN-SV does now)
+///   against `orders 1..=5` (before: the orders above the rank tie the rank order's score).
+fn order_sweep(c: &mut Criterion) {
+    use lpvid::window::write_pbsid_regressor;
+    use lpvid_host::pbsid::realize::{states_from_gkz, states_from_gkz_rows, OrderSweep};
+    let e = systems::b2(75, 25.0, 0);
+    let data = rows();
+    let slab = Slab::new(&data, 1, 1, 2).unwrap();
+    let p = 5;
+    let dims = PbsidDims::new(1, 1, 1, p).unwrap();
+    let windows = slab.len() - p;
+    let all: Vec<usize> = (0..windows).collect();
+    let (g, _) = LazyGram::build(&dims, &slab, &all, true).unwrap();
+    let mut z_last = vec![0.0; dims.q().unwrap()];
+    write_pbsid_regressor(&dims, &slab, windows, &mut z_last);
+    // a dense [C K^p, D] (every column active): Gamma K Z of full rank, states of order 5
+    let dense: Vec<f64> = (0..g.regressors())
+        .map(|j| 0.2 * (j as f64 * 0.7).sin())
+        .collect();
+    let gkz = bpdn::gamma_kz(&dims, p, &dense, &g, &z_last);
+    let (sv, states) = states_from_gkz(&gkz, windows).unwrap();
+    assert_eq!(bpdn::numerical_rank(&sv), 5);
+    let mut group = c.benchmark_group("order_sweep");
+    group.bench_function(
+        "states row-major (gamma_kz_rows, states_from_gkz_rows)",
+        |b| {
+            b.iter(|| {
+                let gkz = bpdn::gamma_kz_rows(&dims, p, black_box(&dense), &g, &z_last);
+                black_box(states_from_gkz_rows(&gkz, 5, windows).unwrap())
+            })
+        },
+    );
+    group.bench_function(
+        "states column-major (gamma_kz, states_from_gkz; before)",
+        |b| {
+            b.iter(|| {
+                let gkz = bpdn::gamma_kz(&dims, p, black_box(&dense), &g, &z_last);
+                black_box(states_from_gkz(&gkz, windows).unwrap())
+            })
+        },
+    );
+    group.bench_function("Grams by dot products", |b| {
+        b.iter(|| black_box(OrderSweep::new(&dims, &slab, black_box(&states), true).unwrap()))
+    });
+    group.bench_function("Grams by the core's batch update", |b| {
+        b.iter(|| {
+            black_box(OrderSweep::with_core_grams(&dims, &slab, black_box(&states), true).unwrap())
+        })
+    });
+    let sweep = OrderSweep::new(&dims, &slab, &states, true).unwrap();
+    for n in 1..=5 {
+        assert!(sweep.realize_scorer(n).is_ok());
+    }
+    group.bench_function("orders 1..=5, nested factors", |b| {
+        b.iter(|| {
+            for n in 1..=5 {
+                black_box(sweep.realize_scorer(black_box(n)).unwrap());
+            }
+        })
+    });
+    group.bench_function("orders 1..=5, per order", |b| {
+        b.iter(|| {
+            for n in 1..=5 {
+                black_box(sweep.realize_scorer_per_order(black_box(n)).unwrap());
+            }
+        })
+    });
+    // a point of rank 1
+    let mut theta = vec![0.0; g.regressors()];
+    theta[dims.block_offset(p)] = 0.7;
+    theta[g.regressors() - 1] = 0.3;
+    let gkz = bpdn::gamma_kz(&dims, p, &theta, &g, &z_last);
+    let (sv, x) = states_from_gkz(&gkz, windows).unwrap();
+    let rank = bpdn::numerical_rank(&sv);
+    assert_eq!(rank, 1);
+    let val = &e.val;
+    let record = bpdn::ScoredRecord::new(val, 2);
+    let score_upto = |top: usize| {
+        let sweep = OrderSweep::new(&dims, &slab, &x.rows(0, top).into_owned(), true).unwrap();
+        let mut best = f64::INFINITY;
+        for n in 1..=top {
+            best = best.min(sweep.realize_scorer(n).unwrap().error_below(&record, best));
+        }
+        best
+    };
+    group.bench_function("rank-1 point, orders 1..=rank realized and scored", |b| {
+        b.iter(|| black_box(score_upto(black_box(rank))))
+    });
+    group.bench_function("rank-1 point, orders 1..=5 (before)", |b| {
+        b.iter(|| black_box(score_upto(black_box(5))))
+    });
+    group.finish();
+}
+
+criterion_group!(
+    bpdn_bench,
+    compare,
+    scorer,
+    realize_for_scoring,
+    order_sweep
+);
 criterion_main!(bpdn_bench);

@@ -77,7 +77,7 @@ use lpvid::window::write_pbsid_regressor;
 use lpvid::{PbsidDims, Samples, Slab};
 use nalgebra::DMatrix;
 
-use super::realize::{states_from_gkz, OrderSweep};
+use super::realize::{states_from_gkz_rows, OrderSweep};
 use crate::linalg::LinalgError;
 use crate::lpvss::{LpvSs, Signals};
 
@@ -435,6 +435,18 @@ pub fn gamma_kz(
     g: &LazyGram,
     z_last: &[f64],
 ) -> DMatrix<f64> {
+    let w = g.n + 1;
+    DMatrix::from_row_slice(f * dims.l, w, &gamma_kz_rows(dims, f, theta, g, z_last))
+}
+
+/// [`gamma_kz`] row-major (f l rows of N - p + 1 values), as BPDN-SV's path points use it.
+pub fn gamma_kz_rows(
+    dims: &PbsidDims,
+    f: usize,
+    theta: &[f64],
+    g: &LazyGram,
+    z_last: &[f64],
+) -> Vec<f64> {
     let (p, l) = (dims.p, dims.l);
     let qf = g.q;
     let n = g.n;
@@ -465,7 +477,7 @@ pub fn gamma_kz(
             }
         }
     }
-    DMatrix::from_row_slice(f * l, w, &acc)
+    acc
 }
 
 /// The scaled samples of `slab` as signals (inputs, outputs, scheduling mu[1..]).
@@ -974,6 +986,17 @@ pub struct SimSelection {
     pub reason: String,
 }
 
+/// Singular values of Gamma K Z (15) at or below this fraction of the largest are rounding:
+/// their squares are below the 1e-12 relative rank tolerance of the realization's normal
+/// equations ([`crate::linalg::min_norm_from_normal`]).
+pub const RANK_SV_TOL: f64 = 1e-6;
+
+/// The number of singular values (descending) above [`RANK_SV_TOL`] times the largest.
+pub fn numerical_rank(sv: &[f64]) -> usize {
+    let top = sv.first().copied().unwrap_or(0.0);
+    sv.iter().filter(|&&v| v > RANK_SV_TOL * top).count()
+}
+
 /// Points without improvement after which the path stops (the score has turned).
 const PATIENCE: usize = 10;
 
@@ -1077,6 +1100,7 @@ pub fn select_by_simulation_with(
         return Err(BpdnError::NoCandidateOrder);
     }
     let nmax = orders.iter().copied().max().unwrap_or(1);
+    let min_order = orders.iter().copied().min().unwrap_or(1);
     let mut z_last = vec![0.0; dims.q()?];
     write_pbsid_regressor(dims, slab, windows, &mut z_last);
     let cross = g.cross(y, l);
@@ -1098,8 +1122,8 @@ pub fn select_by_simulation_with(
         if fit.index == 0 {
             lmax = fit.lambda;
         }
-        let gkz = gamma_kz(dims, f, th, g, &z_last);
-        let (sv, x) = match states_from_gkz(&gkz, windows) {
+        let gkz = gamma_kz_rows(dims, f, th, g, &z_last);
+        let (sv, x) = match states_from_gkz_rows(&gkz, f * l, windows) {
             Ok(v) => v,
             Err(e) => {
                 err_msg = Some(BpdnError::from(e));
@@ -1107,10 +1131,17 @@ pub fn select_by_simulation_with(
             }
         };
         let mut improved = false;
+        // orders beyond the numerical rank of Gamma K Z add states of rounding noise to the
+        // model of the rank (their realization drops them at its rank tolerance): their
+        // scores tie that model's to rounding, so they are not scored (the smallest
+        // candidate order always is)
+        let top = numerical_rank(&sv).max(min_order);
         // one pair of Grams for all orders of this point (the states of order n are the
         // first n rows of x); a point whose Grams fail realizes at no order
-        let sweep = OrderSweep::new(dims, slab, &x.rows(0, nmax).into_owned(), feedthrough);
-        for &n in &orders {
+        let rows = nmax.min(top);
+        let sweep =
+            OrderSweep::from_rows(dims, slab, &x[..rows * (windows + 1)], rows, feedthrough);
+        for &n in orders.iter().filter(|&&n| n <= top) {
             let Ok(run) = sweep
                 .as_ref()
                 .map_err(|_| ())
@@ -1142,7 +1173,7 @@ pub fn select_by_simulation_with(
                     active: fit.active,
                     theta: th.to_vec(),
                     sv: sv.clone(),
-                    states: x.clone(),
+                    states: DMatrix::from_row_slice(f * l, windows + 1, &x),
                 });
                 improved = true;
             }
@@ -1200,6 +1231,7 @@ pub fn select_by_simulation_with(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::pbsid::realize::states_from_gkz;
     use nalgebra::DVector;
 
     /// The allocation-free scorer equals the squared free-run error of `LpvSs::simulate` on
@@ -1229,6 +1261,60 @@ mod tests {
                 assert_eq!(got, f64::INFINITY);
             }
         }
+    }
+
+    /// Orders beyond the numerical rank of Gamma K Z, which BPDN-SV no longer scores, tie
+    /// the rank order's score: B2 (p = 5, seed 3), a [C K^p, D] whose only non-zero columns
+    /// lie in the last lag block (Gamma K Z of rank 1 or 2), realized at orders 1..=5 and
+    /// scored on the validation record; the orders above the rank give the rank order's
+    /// error to 1e-9 relative (or both diverge).
+    #[test]
+    fn orders_beyond_the_rank_tie_the_rank_order() {
+        let e = crate::systems::b2(75, 25.0, 3);
+        let rows_of = |sig: &Signals| -> Vec<f64> {
+            (0..sig.len())
+                .flat_map(|k| [sig.u[(k, 0)], sig.y[(k, 0)], 1.0, sig.p[(k, 0)]])
+                .collect()
+        };
+        let rows = rows_of(&e.train);
+        let slab = Slab::new(&rows, 1, 1, 2).unwrap();
+        let p = 5;
+        let dims = PbsidDims::new(1, 1, 1, p).unwrap();
+        let windows = slab.len() - p;
+        let all: Vec<usize> = (0..windows).collect();
+        let (g, _) = LazyGram::build(&dims, &slab, &all, true).unwrap();
+        let mut z_last = vec![0.0; dims.q().unwrap()];
+        write_pbsid_regressor(&dims, &slab, windows, &mut z_last);
+        let record = ScoredRecord::new(&e.val, 2);
+        let last = dims.block_offset(p);
+        for active in [vec![last], vec![last, last + 3]] {
+            let mut theta = vec![0.0; g.q];
+            for (i, &c) in active.iter().enumerate() {
+                theta[c] = 0.7 - 0.4 * i as f64;
+            }
+            theta[g.q - 1] = 0.3;
+            let gkz = gamma_kz(&dims, p, &theta, &g, &z_last);
+            let (sv, x) = states_from_gkz(&gkz, windows).unwrap();
+            let rank = numerical_rank(&sv);
+            assert!((1..=2).contains(&rank), "{sv:?}");
+            let sweep = OrderSweep::new(&dims, &slab, &x, true).unwrap();
+            let score = |n: usize| {
+                sweep
+                    .realize_scorer(n)
+                    .unwrap()
+                    .error_below(&record, f64::INFINITY)
+            };
+            let want = score(rank);
+            for n in rank + 1..=p {
+                let got = score(n);
+                assert!(
+                    (want.is_infinite() && got.is_infinite()) || (got - want).abs() <= 1e-9 * want,
+                    "rank {rank}, order {n}: {got} vs {want}"
+                );
+            }
+        }
+        assert_eq!(numerical_rank(&[2.0, 1e-3, 1.9e-6, 0.0]), 2);
+        assert_eq!(numerical_rank(&[0.0, 0.0]), 0);
     }
 
     /// The scorers compiled for a fixed order (and for one C, one D and one or two inputs)

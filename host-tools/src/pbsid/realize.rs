@@ -41,13 +41,45 @@ pub(crate) fn svd_left(w: &DMatrix<f64>) -> Result<(Vec<f64>, DMatrix<f64>), Lin
 
 /// Kernel paper, eq. (15)-(16), on an explicit Gamma K Z (windows 0..=N-p): the SVD from its first
 /// `windows` columns (the regression windows), state candidates U^T Gamma K Z for all.
-pub(crate) fn states_from_gkz(
+pub fn states_from_gkz(
     gkz: &DMatrix<f64>,
     windows: usize,
 ) -> Result<(Vec<f64>, DMatrix<f64>), LinalgError> {
     let reg_cols = gkz.columns(0, windows);
     let (sv, u) = svd_left(&(reg_cols * reg_cols.transpose()))?;
     Ok((sv, u.transpose() * gkz))
+}
+
+/// [`states_from_gkz`] on a row-major Gamma K Z (`rows` rows of `windows` + 1 values):
+/// the Gram of the regression columns by [`crate::kernel_sweep::dot4`], the states
+/// U^T Gamma K Z row-major, each entry summed over the rows of Gamma K Z in order (the
+/// same values to rounding; BPDN-SV forms these at every path point).
+pub fn states_from_gkz_rows(
+    gkz: &[f64],
+    rows: usize,
+    windows: usize,
+) -> Result<(Vec<f64>, Vec<f64>), LinalgError> {
+    let w = windows + 1;
+    let row = |a: usize| &gkz[a * w..a * w + windows];
+    let mut gram = DMatrix::zeros(rows, rows);
+    for b in 0..rows {
+        for a in 0..=b {
+            let v = crate::kernel_sweep::dot4(row(a), row(b));
+            gram[(a, b)] = v;
+            gram[(b, a)] = v;
+        }
+    }
+    let (sv, u) = svd_left(&gram)?;
+    let mut x = vec![0.0; rows * w];
+    for (i, xi) in x.chunks_exact_mut(w).enumerate() {
+        for j in 0..rows {
+            let c = u[(j, i)];
+            for (d, v) in xi.iter_mut().zip(&gkz[j * w..(j + 1) * w]) {
+                *d += c * v;
+            }
+        }
+    }
+    Ok((sv, x))
 }
 
 /// Kernel paper, section 4.3 with eq. (2), the output equation: C and D from the normal
@@ -345,12 +377,275 @@ pub struct OrderSweep {
     r_ft: usize,
     g1: DMatrix<f64>,
     g2: DMatrix<f64>,
+    /// The output equation's normal matrix with the regressors in nested order [u; x]
+    /// (order n: the leading r_ft + n), factored once for all orders.
+    out: NestedChol,
+    /// The state equation's, regressors mu (x) [x; u; y] in nested order (all mu (x) [u; y],
+    /// then mu (x) x_1, mu (x) x_2, ...; order n: the leading m (r + l + n)).
+    state: NestedChol,
+}
+
+/// A Cholesky factor L of a normal matrix A whose regressors are ordered so that every
+/// candidate order uses a leading block: the factor of a leading k x k block is the leading
+/// block of L, and so are L^{-1} and the forward-substituted cross products L^{-1} b. With
+/// the running ||L_k^{-1}||_F^2 and tr(A_k), the full-rank proof of [`spd_solve`] and the
+/// solution of every leading size cost one back substitution each.
+struct NestedChol {
+    d: usize,
+    /// L, row-major (lower triangle).
+    l: Vec<f64>,
+    /// Leading sizes up to `ok` have positive, finite pivots.
+    ok: usize,
+    /// ||L_k^{-1}||_F^2 for k = 0..=ok.
+    inv2: Vec<f64>,
+    /// tr(A_k) for k = 0..=ok.
+    trace: Vec<f64>,
+    /// L^{-1} b_t of target t at t d .. (t + 1) d (entries below `ok` valid).
+    fwd: Vec<f64>,
+}
+
+impl NestedChol {
+    /// Factor the d x d matrix `a(i, j)` with cross products `b(i, t)` of `targets`
+    /// targets (indices in the nested order).
+    fn new(
+        d: usize,
+        targets: usize,
+        a: impl Fn(usize, usize) -> f64,
+        b: impl Fn(usize, usize) -> f64,
+    ) -> Self {
+        let mut l = vec![0.0; d * d];
+        let mut ok = d;
+        for j in 0..d {
+            let mut s = a(j, j);
+            for k in 0..j {
+                s -= l[j * d + k] * l[j * d + k];
+            }
+            if !(s > 0.0 && s.is_finite()) {
+                ok = j;
+                break;
+            }
+            let ljj = s.sqrt();
+            l[j * d + j] = ljj;
+            for i in j + 1..d {
+                let mut s = a(i, j);
+                for k in 0..j {
+                    s -= l[i * d + k] * l[j * d + k];
+                }
+                l[i * d + j] = s / ljj;
+            }
+        }
+        // rows of L^{-1} (row i needs rows < i only: nested), their running squared norm
+        let mut li = vec![0.0; d * d];
+        let mut inv2 = vec![0.0; ok + 1];
+        let mut trace = vec![0.0; ok + 1];
+        for i in 0..ok {
+            let lii = l[i * d + i];
+            li[i * d + i] = 1.0 / lii;
+            for j in 0..i {
+                let mut s = 0.0;
+                for k in j..i {
+                    s += l[i * d + k] * li[k * d + j];
+                }
+                li[i * d + j] = -s / lii;
+            }
+            let row: f64 = li[i * d..i * d + i + 1].iter().map(|v| v * v).sum();
+            inv2[i + 1] = inv2[i] + row;
+            trace[i + 1] = trace[i] + a(i, i);
+        }
+        let mut fwd = vec![0.0; targets * d];
+        for t in 0..targets {
+            let f = &mut fwd[t * d..(t + 1) * d];
+            for i in 0..ok {
+                let mut s = b(i, t);
+                for k in 0..i {
+                    s -= l[i * d + k] * f[k];
+                }
+                f[i] = s / l[i * d + i];
+            }
+        }
+        NestedChol {
+            d,
+            l,
+            ok,
+            inv2,
+            trace,
+            fwd,
+        }
+    }
+
+    /// Whether the leading k x k block is proven well inside the full-rank case of
+    /// `min_norm_from_normal(A_k, B, 1e-12)` (the test of [`spd_solve`]).
+    fn proven(&self, k: usize) -> bool {
+        k >= 1
+            && k <= self.ok
+            && self.inv2[k].is_finite()
+            && 1.0 / self.inv2[k] > 1e3 * 1e-12 * self.trace[k]
+    }
+
+    /// The solution x = A_k^{-1} b_t (leading size k) into `x[..k]`.
+    fn solve(&self, k: usize, t: usize, x: &mut [f64]) {
+        let (d, l) = (self.d, &self.l);
+        let f = &self.fwd[t * d..];
+        for i in (0..k).rev() {
+            let mut s = f[i];
+            for j in i + 1..k {
+                s -= l[j * d + i] * x[j];
+            }
+            x[i] = s / l[i * d + i];
+        }
+    }
 }
 
 impl OrderSweep {
+    /// The sweep of the two Grams, with both normal equations factored in nested order.
+    fn from_grams(
+        (nmax, r, l, m, r_ft): (usize, usize, usize, usize, usize),
+        g1: DMatrix<f64>,
+        g2: DMatrix<f64>,
+    ) -> Self {
+        // output equation: [u (feedthrough); x_1..x_nmax] against y
+        let idx1: Vec<usize> = (nmax..nmax + r_ft).chain(0..nmax).collect();
+        let out = NestedChol::new(
+            idx1.len(),
+            l,
+            |i, j| g1[(idx1[i], idx1[j])],
+            |i, o| g1[(idx1[i], nmax + r_ft + o)],
+        );
+        // state equation: mu (x) [u; y], then mu (x) x_a for a = 1..nmax
+        let dv = nmax + r + l;
+        let idx2: Vec<usize> = (0..m)
+            .flat_map(|i| (0..r + l).map(move |j| i * dv + nmax + j))
+            .chain((0..nmax).flat_map(|a| (0..m).map(move |i| i * dv + a)))
+            .collect();
+        let state = NestedChol::new(
+            idx2.len(),
+            nmax,
+            |i, j| g2[(idx2[i], idx2[j])],
+            |i, t| g2[(idx2[i], m * dv + t)],
+        );
+        OrderSweep {
+            nmax,
+            r,
+            l,
+            m,
+            r_ft,
+            g1,
+            g2,
+            out,
+            state,
+        }
+    }
+
     /// The two Grams of `states` (all candidate rows; column k is x_{k+p} of window k,
-    /// windows 0..=N-p, the last one only as a successor).
+    /// windows 0..=N-p, the last one only as a successor), each entry one dot product over
+    /// the windows in four lanes ([`crate::kernel_sweep::dot4`]) of a row-major copy of the
+    /// regressor rows: G2's 19 x 19 at B2 p = 5 cost about 80 000 instructions per path
+    /// point through the core's checked, tiled batch update ([`OrderSweep::with_core_grams`],
+    /// the same sums in another order: the Grams agree to rounding). With mu_0 = 1 on every
+    /// window (the affine scheduling of every record) G1 is read from G2's first block.
     pub fn new(
+        dims: &PbsidDims,
+        slab: &Slab<'_, f64>,
+        states: &DMatrix<f64>,
+        feedthrough: bool,
+    ) -> Result<Self, FitError> {
+        let rows: Vec<f64> = states.transpose().as_slice().to_vec();
+        Self::from_rows(dims, slab, &rows, states.nrows(), feedthrough)
+    }
+
+    /// [`OrderSweep::new`] with the states row-major (`nmax` rows of N - p + 1 values).
+    pub fn from_rows(
+        dims: &PbsidDims,
+        slab: &Slab<'_, f64>,
+        states: &[f64],
+        nmax: usize,
+        feedthrough: bool,
+    ) -> Result<Self, FitError> {
+        let (p, r, l, m) = (dims.p, dims.r, dims.l, dims.m());
+        let ns = states.len() / nmax.max(1);
+        let nb = ns - 1;
+        let r_ft = if feedthrough { r } else { 0 };
+        let dv = nmax + r + l;
+        let d2 = m * dv + nmax;
+        // row-major rows over the windows: [mu (x) [x; u; y]; x_{k+1}]
+        let mut rows = vec![0.0; d2 * nb];
+        let mut mu = vec![0.0; m * nb];
+        let mut unit = true;
+        for k in 0..nb {
+            let (u, y, muk) = (slab.u(k + p), slab.y(k + p), slab.mu(k + p));
+            unit &= muk[0] == 1.0;
+            for i in 0..m {
+                mu[i * nb + k] = muk[i];
+                for a in 0..r {
+                    rows[(i * dv + nmax + a) * nb + k] = muk[i] * u[a];
+                }
+                for a in 0..l {
+                    rows[(i * dv + nmax + r + a) * nb + k] = muk[i] * y[a];
+                }
+            }
+        }
+        for a in 0..nmax {
+            let xa = &states[a * ns..(a + 1) * ns];
+            for i in 0..m {
+                let dst = &mut rows[(i * dv + a) * nb..(i * dv + a + 1) * nb];
+                for ((d, x), w) in dst.iter_mut().zip(xa).zip(&mu[i * nb..(i + 1) * nb]) {
+                    *d = w * x;
+                }
+            }
+            rows[(m * dv + a) * nb..(m * dv + a + 1) * nb].copy_from_slice(&xa[1..]);
+        }
+        let g2 = DMatrix::from_vec(d2, d2, crate::kernel_sweep::row_gram(&rows, d2, nb));
+        // a non-finite row, or products that overflow, leave a non-finite entry (the
+        // core's batch update refuses both)
+        if let Some(index) = g2.iter().position(|v| !v.is_finite()) {
+            return Err(lpvid::Error::NonFinite {
+                field: lpvid::Field::Regressor,
+                index,
+            }
+            .into());
+        }
+        // G1 of [x; u (feedthrough); y]: the raw rows, block 0 of the rows above when mu_0 = 1
+        let idx: Vec<usize> = (0..nmax)
+            .chain(nmax..nmax + r_ft)
+            .chain(nmax + r..nmax + r + l)
+            .collect();
+        let g1 = if unit {
+            DMatrix::from_fn(idx.len(), idx.len(), |a, b| g2[(idx[a], idx[b])])
+        } else {
+            let raw: Vec<Vec<f64>> = idx
+                .iter()
+                .map(|&a| {
+                    (0..nb)
+                        .map(|k| {
+                            let (u, y) = (slab.u(k + p), slab.y(k + p));
+                            if a < nmax {
+                                states[a * ns + k]
+                            } else if a < nmax + r {
+                                u[a - nmax]
+                            } else {
+                                y[a - nmax - r]
+                            }
+                        })
+                        .collect()
+                })
+                .collect();
+            let mut g = DMatrix::zeros(idx.len(), idx.len());
+            for b in 0..idx.len() {
+                for a in 0..=b {
+                    let v = crate::kernel_sweep::dot4(&raw[a], &raw[b]);
+                    g[(a, b)] = v;
+                    g[(b, a)] = v;
+                }
+            }
+            g
+        };
+        Ok(OrderSweep::from_grams((nmax, r, l, m, r_ft), g1, g2))
+    }
+
+    /// [`OrderSweep::new`] with both Grams accumulated by the core's `Gram::update_batch`
+    /// ([`REALIZE_BATCH`] rows per batch; the sweep before, kept for `benches/bpdn.rs`,
+    /// group `order_sweep_grams`, and the test that the two agree).
+    pub fn with_core_grams(
         dims: &PbsidDims,
         slab: &Slab<'_, f64>,
         states: &DMatrix<f64>,
@@ -379,20 +674,19 @@ impl OrderSweep {
             let d = g.dim();
             DMatrix::from_fn(d, d, |i, j| g.get(i, j))
         };
-        Ok(OrderSweep {
-            nmax,
-            r,
-            l,
-            m,
-            r_ft,
-            g1: full(&g1),
-            g2: full(&g2),
-        })
+        Ok(OrderSweep::from_grams(
+            (nmax, r, l, m, r_ft),
+            full(&g1),
+            full(&g2),
+        ))
     }
 
     /// The model of order `n` (1 <= n <= nmax).
     pub fn realize(&self, n: usize) -> Result<LpvSs, FitError> {
-        let (abk, c, d) = self.solve_order(n)?;
+        let (abk, c, d) = match self.solve_nested(n) {
+            Some(v) => v,
+            None => self.solve_order(n)?,
+        };
         Ok(LpvSs::from_abk(&abk, vec![c], vec![d]))
     }
 
@@ -400,8 +694,75 @@ impl OrderSweep {
     /// scorer without the intermediate `LpvSs` (the same numbers: BPDN-SV scores every
     /// order of every path point with it).
     pub fn realize_scorer(&self, n: usize) -> Result<FreeRun, FitError> {
+        let (abk, c, d) = match self.solve_nested(n) {
+            Some(v) => v,
+            None => self.solve_order(n)?,
+        };
+        Ok(FreeRun::from_abk(&abk, &c, &d))
+    }
+
+    /// [`OrderSweep::realize_scorer`] with the normal equations of order `n` formed in the
+    /// innovation basis [x; u; e] and solved on their own (the sweep before the nested
+    /// factors; kept for `benches/bpdn.rs`, group `realize_for_scoring`).
+    pub fn realize_scorer_per_order(&self, n: usize) -> Result<FreeRun, FitError> {
         let (abk, c, d) = self.solve_order(n)?;
         Ok(FreeRun::from_abk(&abk, &c, &d))
+    }
+
+    /// Order `n` from the nested factors, when both leading blocks are proven full rank
+    /// (then the least-squares solution is unique and equals [`OrderSweep::solve_order`]'s
+    /// up to rounding); `None` otherwise. The state equation is solved in the regressors
+    /// mu (x) [x; u; y], which span what mu (x) [x; u; e] spans (e = y - C x - D u), and
+    /// mapped back: x+ = sum_i mu_i ((A_i - K_i C) x + (B_i - K_i D) u + K_i y), so
+    /// A_i = A'_i + K_i C and B_i = B'_i + K_i D.
+    fn solve_nested(&self, n: usize) -> Option<Solved> {
+        let (r, l, m, r_ft) = (self.r, self.l, self.m, self.r_ft);
+        assert!(n <= self.nmax, "order beyond the states");
+        let k1 = r_ft + n;
+        let k2 = m * (r + l + n);
+        if !self.out.proven(k1) || !self.state.proven(k2) {
+            return None;
+        }
+        let mut x = vec![0.0; k1.max(k2)];
+        let mut c = DMatrix::zeros(l, n);
+        let mut d = DMatrix::zeros(l, r);
+        for o in 0..l {
+            self.out.solve(k1, o, &mut x);
+            for j in 0..r_ft {
+                d[(o, j)] = x[j];
+            }
+            for a in 0..n {
+                c[(o, a)] = x[r_ft + a];
+            }
+        }
+        let wb = n + r + l;
+        let mut abk = DMatrix::zeros(n, m * wb);
+        for t in 0..n {
+            self.state.solve(k2, t, &mut x);
+            for i in 0..m {
+                let col = i * wb;
+                // K_i, B'_i from mu_i (x) [u; y], A'_i from mu_i (x) x_a
+                let uy = &x[i * (r + l)..(i + 1) * (r + l)];
+                for o in 0..l {
+                    abk[(t, col + n + r + o)] = uy[r + o];
+                }
+                for a in 0..n {
+                    let mut v = x[m * (r + l) + a * m + i];
+                    for o in 0..l {
+                        v += uy[r + o] * c[(o, a)];
+                    }
+                    abk[(t, col + a)] = v;
+                }
+                for j in 0..r {
+                    let mut v = uy[j];
+                    for o in 0..l {
+                        v += uy[r + o] * d[(o, j)];
+                    }
+                    abk[(t, col + n + j)] = v;
+                }
+            }
+        }
+        Some((abk, c, d))
     }
 
     /// [A^(1) B^(1) K^(1) | ...], C and D of order `n`: the two normal equations formed from
@@ -522,6 +883,55 @@ mod tests {
                 assert!(a.same_packing(&b), "n = {n}, {feedthrough}");
             }
         }
+    }
+
+    /// The nested factors give every order of the sweep the model of its own normal
+    /// equations in the innovation basis (`solve_order`), to 1e-10 relative, and the Grams
+    /// by dot products equal the core's batch update to 1e-13 (B2 record, p = 4 states, with
+    /// and without feedthrough); a singular order, or a state row of zeros, leaves the orders
+    /// that use it to the per-order solve (not proven full rank).
+    #[test]
+    fn nested_orders_equal_per_order_solves() {
+        let (_, rows) = b2_rows();
+        let slab = Slab::new(&rows, 1, 1, 2).unwrap();
+        let p = 4;
+        let dims = PbsidDims::new(1, 1, 1, p).unwrap();
+        let cols = slab.len() - p + 1;
+        let nmax = 4;
+        let states = DMatrix::from_fn(nmax, cols, |i, k| {
+            (0..p)
+                .map(|j| {
+                    ((i * 5 + j * 3) as f64 * 0.29).sin() * slab.y(k + j)[0]
+                        + 0.1 * slab.u(k + j)[0]
+                })
+                .sum::<f64>()
+        });
+        for feedthrough in [true, false] {
+            let sweep = OrderSweep::new(&dims, &slab, &states, feedthrough).unwrap();
+            let core = OrderSweep::with_core_grams(&dims, &slab, &states, feedthrough).unwrap();
+            for (a, b) in [(&sweep.g1, &core.g1), (&sweep.g2, &core.g2)] {
+                assert!((a - b).amax() <= 1e-13 * b.amax(), "{feedthrough}");
+            }
+            // order 4 of these states is singular (the last pivot of its state equation)
+            assert!(sweep.solve_nested(nmax).is_none());
+            for n in 1..nmax {
+                let (abk, c, d) = sweep.solve_nested(n).expect("full rank");
+                let (abk0, c0, d0) = sweep.solve_order(n).unwrap();
+                for (g, w) in [(&abk, &abk0), (&c, &c0), (&d, &d0)] {
+                    let err = (g - w).amax();
+                    assert!(
+                        err <= 1e-10 * w.amax().max(1.0),
+                        "n = {n}, {feedthrough}: {err}"
+                    );
+                }
+            }
+        }
+        let mut flat = states.clone();
+        flat.row_mut(2).fill(0.0);
+        let sweep = OrderSweep::new(&dims, &slab, &flat, true).unwrap();
+        assert!(sweep.solve_nested(2).is_some());
+        assert!(sweep.solve_nested(3).is_none() && sweep.solve_nested(4).is_none());
+        assert!(sweep.realize(3).is_ok());
     }
 
     /// Every order of an [`OrderSweep`] equals [`realize_from_states`] on the first n rows
