@@ -48,7 +48,7 @@ use super::catalogue::{regressors, MAX_KERNEL_WINDOWS, MAX_REGRESSORS};
 use super::memory::{judged, Basis};
 use super::refit::{fit_spec, Fitted, Spec};
 use super::residual::{ResidualReport, ALPHA};
-use super::stats::{batch_count, batch_log_ratios, mean_t, t_sf};
+use super::stats::{batch_count, batch_log_ratios, mean_t, signed_rank_p};
 use crate::data::{DataError, Dataset};
 use crate::model::{ModelFile, ModelKind};
 use crate::pbsid::Order;
@@ -405,9 +405,11 @@ fn score_inner(
 pub struct Comparison {
     /// 1 - sum(loss1) / sum(loss0): the fraction of the null's error removed.
     pub explained: f64,
-    /// Batch-means t of the per-batch log ratios of the null's to the variant's error.
+    /// Batch-means t of the per-batch log ratios of the null's to the variant's error (shown
+    /// beside the p-value; the test is the signed-rank one).
     pub t: f64,
-    /// One-sided p-value of `t`.
+    /// One-sided p-value of the exact Wilcoxon signed-rank test of the per-batch log ratios
+    /// ([`signed_rank_p`]).
     pub p_value: f64,
     /// The per-batch log ratios (empty when the record is too short for one batch).
     pub ratios: Vec<f64>,
@@ -423,8 +425,7 @@ pub fn compare(loss0: &[f64], loss1: &[f64]) -> Comparison {
     let (t, p_value) = if ratios.is_empty() {
         (0.0, 1.0)
     } else {
-        let (t, nu) = mean_t(&ratios);
-        (t, t_sf(t, nu))
+        (mean_t(&ratios).0, signed_rank_p(&ratios))
     };
     Comparison {
         explained,
