@@ -159,7 +159,7 @@ pub const ENCOMPASSING_TESTS: usize = 2;
 /// bench-diagnose.md, helpers h17sc, h18r). Here the structure U with both ([`union_spec`])
 /// is fitted twice if the two were fitted differently: the way S is, and judged against S
 /// (does R add to S?), and the way R is, judged against R (does S add to R?), each with the
-/// batch log-ratio t test of a finding ([`versus`], [`significant`] at level ALPHA /
+/// batch log-ratio test of a finding ([`versus`], [`significant`] at level ALPHA /
 /// [`ENCOMPASSING_TESTS`], explaining at least [`MIN_EXPLAINED`] of the finding's held-out
 /// error: a richer structure recovers some estimation error by chance, the floor the noise
 /// threshold was calibrated with). U nests each of S and R fitted the same way, so the tests

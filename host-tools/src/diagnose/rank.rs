@@ -210,8 +210,9 @@ fn order_by_own_error(order: &mut [usize], scored: &[Scored]) {
 /// equation also reaches (the family's scheduled-output plants were named
 /// scheduling-nonlinearity in 2 of 4). The richer structure is kept first only when it
 /// earns its extra coefficients with the evidence a finding needs: its held-out batches
-/// beat the simpler finding's head to head, the same batch log-ratio t test as against the
-/// null ([`batch_log_ratios`], one-sided at ALPHA / `tried`). Otherwise the finding with
+/// beat the simpler finding's head to head: a one-sided t test of the batch log ratios
+/// ([`batch_log_ratios`], at ALPHA / `tried`; a finding against its null is judged by the
+/// signed-rank test of the same ratios, [`super::effects::compare`]). Otherwise the finding with
 /// fewer free coefficients ([`parameter_count`]) that the richer one does not beat comes
 /// first (the one explaining most of them), and the rule is applied again from it.
 ///

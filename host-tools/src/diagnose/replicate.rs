@@ -10,8 +10,9 @@
 //! excess held-out error from estimation noise, and a richer candidate sometimes recovers it
 //! by chance.)
 //!
-//! **Short held-out records** (fewer than [`SHORT_BATCHES`] batches of 25 samples): the t test
-//! on a few batches cannot pass the Bonferroni level whatever the effect (the cascaded tanks'
+//! **Short held-out records** (fewer than [`SHORT_BATCHES`] batches of 25 samples): the
+//! held-out test on a few batches cannot pass the Bonferroni level whatever the effect (the
+//! signed-rank test's smallest p-value is 2^-B) (the cascaded tanks'
 //! 205 held-out samples give 6 batches), so the record the diagnosis sees (training rows, then
 //! held-out rows) is cross-validated in [`CV_BLOCKS`] = 5 contiguous blocks ([`cv_folds`]): the
 //! held-out record is one block, the training data are cut into 4, and each training block is
@@ -153,9 +154,8 @@ pub fn replicated(r: &[(f64, f64)]) -> bool {
 }
 
 /// A held-out record with fewer scored batches than this (of 25 samples, [`super::stats::batch_count`]) is
-/// short: its batch t test alone has too few degrees of freedom to pass the Bonferroni level
-/// (205 held-out samples of the cascaded tanks: 6 batches, 5 degrees of freedom, t > 9
-/// needed), so the evidence of the two training halves is added ([`cross_fold`]).
+/// short: its batch test alone cannot pass the Bonferroni level (205 held-out samples of
+/// the cascaded tanks: 6 batches, the signed-rank test's smallest p-value 2^-6 = 1.6e-2), so the evidence of the two training halves is added ([`cross_fold`]).
 pub const SHORT_BATCHES: usize = 20;
 
 /// Whether `scored` held-out samples make a short record ([`SHORT_BATCHES`]).
