@@ -99,8 +99,7 @@ fn memory(
 
 /// Finite-difference step for a column: 1e-4 of its spread (1e-4 when constant).
 fn step_size(x: &[f64]) -> f64 {
-    let m = x.iter().sum::<f64>() / x.len().max(1) as f64;
-    let s = (x.iter().map(|v| (v - m) * (v - m)).sum::<f64>() / x.len().max(1) as f64).sqrt();
+    let (_, s) = crate::linalg::mean_std(x.iter().copied());
     1e-4 * if s > 0.0 { s } else { 1.0 }
 }
 
