@@ -183,15 +183,25 @@ pub fn sweep_workers(work: f64) -> usize {
 }
 
 /// Run `job(columns, out)` over the column range `0..cols` of a column-major output of
-/// `rows` rows: on the calling thread (`workers` 1), or split at `cut` with the columns
-/// `cut..cols` on a second thread (`workers` 2). Each part writes only its own columns, so
-/// the result does not depend on the split.
+/// `rows` rows: on the calling thread (`workers` 1), or split at `cut` with the two parts on
+/// two threads (`workers` 2): faer's thread pool when `pool` (now), else the calling thread
+/// and a scoped thread of its own (before). Each part writes only its own columns, so the
+/// result does not depend on the split or the threads.
+///
+/// Why the pool: in a kernel-form fit the sweeps run just before and just after the
+/// tridiagonal reduction of the kernel, which runs on faer's (rayon) pool from
+/// [`crate::linalg::PAR_MIN_DIM`] rows on. Its two workers, out of work, keep spinning in
+/// `sched_yield` for a while; two threads of our own then share the two cores with them.
+/// Handing both halves to the pool instead gives them to those very workers (B1 N = 1000
+/// p = 5, whole process under a load of 10: Gamma K Z 29-86 ms -> 7-12 ms;
+/// `benches/kernel.rs`, group `sweep_after_reduction`).
 fn split_columns(
     out: &mut [f64],
     rows: usize,
     cols: usize,
     cut: usize,
     workers: usize,
+    pool: bool,
     job: impl Fn(std::ops::Range<usize>, &mut [f64]) + Sync,
 ) {
     let cut = cut.min(cols);
@@ -200,8 +210,16 @@ fn split_columns(
         return;
     }
     let (first, second) = out.split_at_mut(cut * rows);
+    let job = &job;
+    if pool {
+        faer::utils::thread::join_raw(
+            move |_| job(0..cut, first),
+            move |_| job(cut..cols, second),
+            faer::Par::rayon(2),
+        );
+        return;
+    }
     std::thread::scope(|sc| {
-        let job = &job;
         let h = sc.spawn(move || job(cut..cols, second));
         job(0..cut, first);
         h.join().unwrap_or_else(|e| std::panic::resume_unwind(e));
@@ -235,6 +253,32 @@ pub fn dual_gamma_kz_matrix_with(
     cols: usize,
     workers: usize,
 ) -> DMatrix<f64> {
+    gamma_kz(dims, f, slab, alpha, cols, workers, true)
+}
+
+/// [`dual_gamma_kz_matrix_with`] with the second half on a scoped thread of its own instead
+/// of the pool, as before (the same bits; `benches/kernel.rs` compares the two).
+#[doc(hidden)]
+pub fn dual_gamma_kz_matrix_scoped(
+    dims: &PbsidDims,
+    f: usize,
+    slab: &Slab<'_, f64>,
+    alpha: &DMatrix<f64>,
+    cols: usize,
+    workers: usize,
+) -> DMatrix<f64> {
+    gamma_kz(dims, f, slab, alpha, cols, workers, false)
+}
+
+fn gamma_kz(
+    dims: &PbsidDims,
+    f: usize,
+    slab: &Slab<'_, f64>,
+    alpha: &DMatrix<f64>,
+    cols: usize,
+    workers: usize,
+    pool: bool,
+) -> DMatrix<f64> {
     let (p, l) = (dims.p, dims.l);
     let nb = alpha.ncols();
     // alpha row by row, contiguous
@@ -260,7 +304,7 @@ pub fn dual_gamma_kz_matrix_with(
             });
         }
     };
-    split_columns(out.as_mut_slice(), rows, cols, cols / 2, workers, job);
+    split_columns(out.as_mut_slice(), rows, cols, cols / 2, workers, pool, job);
     out
 }
 
@@ -286,6 +330,30 @@ pub fn dual_kernel_matrix_with(
     feedthrough: bool,
     workers: usize,
 ) -> DMatrix<f64> {
+    kernel_matrix(slab, p, nb, feedthrough, workers, true)
+}
+
+/// [`dual_kernel_matrix_with`] with the second half on a scoped thread of its own instead
+/// of the pool, as before (the same bits; `benches/kernel.rs` compares the two).
+#[doc(hidden)]
+pub fn dual_kernel_matrix_scoped(
+    slab: &Slab<'_, f64>,
+    p: usize,
+    nb: usize,
+    feedthrough: bool,
+    workers: usize,
+) -> DMatrix<f64> {
+    kernel_matrix(slab, p, nb, feedthrough, workers, false)
+}
+
+fn kernel_matrix(
+    slab: &Slab<'_, f64>,
+    p: usize,
+    nb: usize,
+    feedthrough: bool,
+    workers: usize,
+    pool: bool,
+) -> DMatrix<f64> {
     let mut g = DMatrix::<f64>::zeros(nb, nb);
     // column b holds b + 1 entries: the first nb / sqrt(2) columns are half the work
     let cut = (nb as f64 / std::f64::consts::SQRT_2).round() as usize;
@@ -307,7 +375,7 @@ pub fn dual_kernel_matrix_with(
             }
         }
     };
-    split_columns(g.as_mut_slice(), nb, nb, cut, workers, job);
+    split_columns(g.as_mut_slice(), nb, nb, cut, workers, pool, job);
     for b in 0..nb {
         for a in 0..b {
             g[(b, a)] = g[(a, b)];
@@ -321,8 +389,8 @@ mod tests {
     use super::*;
     use lpvid::kernel::shifted_kernel;
 
-    /// Both sweeps give the same matrices on one thread and on two (each column is computed
-    /// by the same code whichever thread runs it).
+    /// Both sweeps give the same matrices on one thread and on two, on the pool or on a
+    /// scoped thread (each column is computed by the same code whichever thread runs it).
     #[test]
     fn sweeps_on_two_threads_equal_one() {
         let (r, l, s, p) = (1usize, 2usize, 1usize, 3usize);
@@ -335,12 +403,15 @@ mod tests {
             let one = dual_kernel_matrix_with(&slab, p, nb, ft, 1);
             let two = dual_kernel_matrix_with(&slab, p, nb, ft, 2);
             assert_eq!(one, two);
+            assert_eq!(one, dual_kernel_matrix_scoped(&slab, p, nb, ft, 2));
             assert!(one.iter().any(|v| *v != 0.0));
         }
         let alpha = DMatrix::from_fn(l, nb, |j, a| ((j * nb + a) as f64 * 0.37).cos());
         let one = dual_gamma_kz_matrix_with(&dims, p, &slab, &alpha, nb + 1, 1);
         let two = dual_gamma_kz_matrix_with(&dims, p, &slab, &alpha, nb + 1, 2);
         assert_eq!(one, two);
+        let base = dual_gamma_kz_matrix_scoped(&dims, p, &slab, &alpha, nb + 1, 2);
+        assert_eq!(one, base);
         assert_eq!(sweep_workers(0.0), 1);
     }
 
