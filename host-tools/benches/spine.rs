@@ -162,6 +162,44 @@ fn ridge_step(c: &mut Criterion) {
         })
     });
     group.finish();
+    // the reduction as the kernel form ran it before (the lower triangle copied into a new,
+    // padded faer matrix: 8 MB of first-touch pages) against in the kernel's own storage
+    // (`Tridiagonal::from_lower`, now); each iteration starts from a fresh copy of the kernel,
+    // as the fit has one, in both
+    let mut group = c.benchmark_group("tridiagonal_copy_vs_in_place_B1_p5_kernel995");
+    group.sample_size(10);
+    group.bench_function("copy into a faer matrix (before)", |b| {
+        b.iter(|| {
+            use faer::dyn_stack::{MemBuffer, MemStack};
+            use faer::linalg::evd::tridiag;
+            let g = g.clone();
+            let n = g.nrows();
+            let par = lpvid_host::linalg::par_for(n);
+            let mut m = faer::Mat::<f64>::zeros(n, n);
+            for j in 0..n {
+                m.col_as_slice_mut(j)[j..].copy_from_slice(&g.column(j).as_slice()[j..]);
+            }
+            let bs = faer::linalg::qr::no_pivoting::factor::recommended_block_size::<f64>(n, n);
+            let mut h = faer::Mat::<f64>::zeros(bs, n - 1);
+            let mut buf = MemBuffer::new(tridiag::tridiag_in_place_scratch::<f64>(
+                n,
+                par,
+                Default::default(),
+            ));
+            tridiag::tridiag_in_place(
+                m.as_mut(),
+                h.as_mut(),
+                par,
+                MemStack::new(&mut buf),
+                Default::default(),
+            );
+            black_box(m[(1, 0)])
+        })
+    });
+    group.bench_function("in the kernel's storage (now)", |b| {
+        b.iter(|| black_box(Tridiagonal::from_lower(g.clone()).dim()))
+    });
+    group.finish();
 }
 
 /// BPDN-SV fit time on B2 (N = 75, 25 dB) against Tikhonov-GCV on the same data; the

@@ -609,8 +609,9 @@ fn positive_finite(v: f64) -> bool {
 /// (A + lam I)^{-1} B by a tridiagonal solve.
 pub struct Tridiagonal {
     n: usize,
-    /// Householder vectors below the subdiagonal (faer's in-place layout).
-    reflectors: faer::Mat<f64>,
+    /// Householder vectors below the subdiagonal (faer's in-place layout), column-major
+    /// n x n without padding.
+    reflectors: Vec<f64>,
     /// Block Householder factors.
     factors: faer::Mat<f64>,
     diag: Vec<f64>,
@@ -626,14 +627,30 @@ impl Tridiagonal {
 
     /// As [`Tridiagonal::new`] with the parallelism given (the benches compare both).
     pub fn new_with(a: &DMatrix<f64>, par: faer::Par) -> Tridiagonal {
-        use faer::dyn_stack::{MemBuffer, MemStack};
-        use faer::linalg::evd::tridiag;
         let n = a.nrows();
         // the lower triangle, column by column (the reduction reads no other entry)
-        let mut m = faer::Mat::<f64>::zeros(n, n);
+        let mut m = vec![0.0; n * n];
         for j in 0..n {
-            m.col_as_slice_mut(j)[j..].copy_from_slice(&a.column(j).as_slice()[j..]);
+            m[j * n + j..(j + 1) * n].copy_from_slice(&a.column(j).as_slice()[j..]);
         }
+        Self::reduce(m, n, par)
+    }
+
+    /// As [`Tridiagonal::new`], reducing `a` in its own storage: only its lower triangle is
+    /// read (the strict upper one may hold anything). Saves the copy of an n x n matrix and
+    /// its first-touch page faults (8 MB at n = 995) when the caller has no further use for
+    /// `a`, as the kernel form's ridge step.
+    pub fn from_lower(a: DMatrix<f64>) -> Tridiagonal {
+        let n = a.nrows();
+        assert_eq!(a.ncols(), n);
+        let m = a.data.into();
+        Self::reduce(m, n, par_for(n))
+    }
+
+    /// faer's reduction of the column-major n x n `m` (lower triangle) in place.
+    fn reduce(mut m: Vec<f64>, n: usize, par: faer::Par) -> Tridiagonal {
+        use faer::dyn_stack::{MemBuffer, MemStack};
+        use faer::linalg::evd::tridiag;
         let bs = faer::linalg::qr::no_pivoting::factor::recommended_block_size::<f64>(n, n);
         let mut h = faer::Mat::<f64>::zeros(bs.max(1), n.saturating_sub(1));
         if n > 0 {
@@ -643,15 +660,15 @@ impl Tridiagonal {
                 Default::default(),
             ));
             tridiag::tridiag_in_place(
-                m.as_mut(),
+                faer::MatMut::from_column_major_slice_mut(&mut m, n, n),
                 h.as_mut(),
                 par,
                 MemStack::new(&mut buf),
                 Default::default(),
             );
         }
-        let diag = (0..n).map(|i| m[(i, i)]).collect();
-        let sub = (0..n.saturating_sub(1)).map(|i| m[(i + 1, i)]).collect();
+        let diag = (0..n).map(|i| m[i * n + i]).collect();
+        let sub = (0..n.saturating_sub(1)).map(|i| m[i * n + i + 1]).collect();
         Tridiagonal {
             n,
             reflectors: m,
@@ -678,7 +695,12 @@ impl Tridiagonal {
             // less than the pool's hand-offs: 1.1-1.3 -> 0.5-0.6 ms each way at n = 995
             let par = if k <= 8 { faer::Par::Seq } else { par_for(n) };
             let bs = self.factors.nrows();
-            let ess = self.reflectors.as_ref().submatrix(1, 0, n - 1, n - 1);
+            let ess = faer::MatRef::from_column_major_slice(&self.reflectors, n, n).submatrix(
+                1,
+                0,
+                n - 1,
+                n - 1,
+            );
             let rows = x.as_mut().subrows_mut(1, n - 1);
             let apply = if transpose {
                 hh::apply_block_householder_sequence_transpose_on_the_left_in_place_with_conj::<f64>

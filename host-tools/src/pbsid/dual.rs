@@ -13,9 +13,11 @@ use nalgebra::DMatrix;
 
 use super::error::FitError;
 use super::realize::states_from_gkz;
-use super::ridge::{ridge_solve, NormalForm, RegressionInfo};
+use super::ridge::{ridge_eig, ridge_solve, ridge_tridiagonal, NormalForm, RegressionInfo};
 use super::settings::PbsidOptions;
+use super::settings::Reg;
 use crate::kernel_sweep::{dot4, KernelSweep};
+use crate::linalg::Tridiagonal;
 
 /// Dual path (Algorithm 2): kernel Z^T Z + U^T U by Theorem 10, alpha from (19)-(21)
 /// (Tikhonov-regularised if asked), Gamma^p K^p Z by eq. (25), and the state candidates
@@ -32,16 +34,29 @@ pub(crate) fn dual_states(
     if let Some(rows) = opts.kernel_rows {
         return selected_rows_states(dims, f, slab, windows, rows, opts);
     }
-    let g = dual_kernel_matrix(slab, p, nb, opts.feedthrough);
     let y = DMatrix::from_fn(l, nb, |j, k| slab.y(k + p)[j]);
-    let (x, info) = ridge_solve(
-        &g,
-        &y.transpose(),
-        NormalForm::Dual,
-        y.norm_squared(),
-        nb as f64,
-        opts.reg,
-    )?;
+    let (yt, total, rows) = (y.transpose(), y.norm_squared(), nb as f64);
+    // Tikhonov needs only the kernel's lower triangle, reduced in its own storage
+    let solved = match opts.reg {
+        Reg::TikhonovGcv | Reg::Tikhonov(_) => {
+            let tri = Tridiagonal::from_lower(dual_kernel_lower(slab, p, nb, opts.feedthrough));
+            ridge_tridiagonal(&tri, &yt, NormalForm::Dual, total, rows, opts.reg)?
+        }
+        _ => None,
+    };
+    let (x, info) = match solved {
+        Some(done) => done,
+        // minimum norm, or a ridge parameter too small for the shifted solve: the whole
+        // kernel (the same bits again) and its eigendecomposition
+        None => ridge_eig(
+            &dual_kernel_matrix(slab, p, nb, opts.feedthrough),
+            &yt,
+            NormalForm::Dual,
+            total,
+            rows,
+            opts.reg,
+        )?,
+    };
     let alpha = x.transpose(); // l x nb
     let gkz = dual_gamma_kz_matrix(dims, f, slab, &alpha, nb + 1);
     let (sv, x) = states_from_gkz(&gkz, nb)?;
@@ -354,33 +369,60 @@ fn kernel_matrix(
     workers: usize,
     pool: bool,
 ) -> DMatrix<f64> {
+    let mut g = kernel_lower(slab, p, nb, feedthrough, workers, pool);
+    for b in 0..nb {
+        for a in 0..b {
+            g[(a, b)] = g[(b, a)];
+        }
+    }
+    g
+}
+
+/// The lower triangle of [`dual_kernel_matrix`] (the strict upper one zero), all a
+/// Tikhonov ridge step needs ([`crate::linalg::Tridiagonal::from_lower`]). Column b is the
+/// sweep around window b over the starts s >= b: entry (s, b) has the same bits as entry
+/// (b, s) of the sweep over s <= b (the sample Gram matrices are symmetric to the bit and
+/// Theorem 10 sums in the same order), so the full matrix is this one mirrored.
+pub(crate) fn dual_kernel_lower(
+    slab: &Slab<'_, f64>,
+    p: usize,
+    nb: usize,
+    feedthrough: bool,
+) -> DMatrix<f64> {
+    let work = (nb * nb / 2 * p) as f64;
+    kernel_lower(slab, p, nb, feedthrough, sweep_workers(work), true)
+}
+
+fn kernel_lower(
+    slab: &Slab<'_, f64>,
+    p: usize,
+    nb: usize,
+    feedthrough: bool,
+    workers: usize,
+    pool: bool,
+) -> DMatrix<f64> {
     let mut g = DMatrix::<f64>::zeros(nb, nb);
-    // column b holds b + 1 entries: the first nb / sqrt(2) columns are half the work
-    let cut = (nb as f64 / std::f64::consts::SQRT_2).round() as usize;
+    // column b holds nb - b entries: the first nb (1 - 1/sqrt(2)) columns are half the work
+    let cut = (nb as f64 * (1.0 - std::f64::consts::FRAC_1_SQRT_2)).round() as usize;
     let job = |range: std::ops::Range<usize>, dst: &mut [f64]| {
         let mut sweep = KernelSweep::new(slab, p);
         let first = range.start;
         for b in range {
             let col = &mut dst[(b - first) * nb..(b - first + 1) * nb];
-            sweep.window(b, 0, b + 1, |t, ks| {
+            sweep.window(b, b as isize, nb - b, |t, ks| {
                 if t == 0 {
-                    col[..=b].copy_from_slice(ks);
+                    col[b..].copy_from_slice(ks);
                 }
             });
             if feedthrough {
                 let ub = slab.u(b + p);
-                for (a, v) in col[..=b].iter_mut().enumerate() {
+                for (a, v) in col.iter_mut().enumerate().skip(b) {
                     *v += lpvid::real::dot(slab.u(a + p), ub);
                 }
             }
         }
     };
     split_columns(g.as_mut_slice(), nb, nb, cut, workers, pool, job);
-    for b in 0..nb {
-        for a in 0..b {
-            g[(b, a)] = g[(a, b)];
-        }
-    }
     g
 }
 
@@ -404,6 +446,14 @@ mod tests {
             let two = dual_kernel_matrix_with(&slab, p, nb, ft, 2);
             assert_eq!(one, two);
             assert_eq!(one, dual_kernel_matrix_scoped(&slab, p, nb, ft, 2));
+            // the lower triangle alone, to the bit; the full matrix symmetric
+            let lower = dual_kernel_lower(&slab, p, nb, ft);
+            assert_eq!(lower.lower_triangle(), one.lower_triangle());
+            assert_eq!(
+                lower.upper_triangle(),
+                DMatrix::from_diagonal(&one.diagonal())
+            );
+            assert_eq!(one, one.transpose());
             assert!(one.iter().any(|v| *v != 0.0));
         }
         let alpha = DMatrix::from_fn(l, nb, |j, a| ((j * nb + a) as f64 * 0.37).cos());
