@@ -162,6 +162,38 @@ fn ridge_step(c: &mut Criterion) {
         })
     });
     group.finish();
+    // one GCV evaluation (RSS and trace at a lambda) as separate factor / solve / trace
+    // passes (before) and fused into one forward and one backward pass (now): 100 lambdas
+    // over the range GCV searches, same tridiagonal, same run
+    let t = Tridiagonal::new(&g);
+    let bt = t.to_tridiagonal(&y);
+    let vmax = t.largest_eigenvalue();
+    let lams: Vec<f64> = (0..100)
+        .map(|e| vmax * 10f64.powf(-14.0 + 0.15 * e as f64))
+        .collect();
+    let mut group = c.benchmark_group("gcv_100_evaluations_B1_p5_kernel995");
+    group.sample_size(20);
+    group.bench_function("factor, solves, trace (before)", |b| {
+        b.iter(|| {
+            let s: f64 = lams
+                .iter()
+                .filter_map(|&l| t.shifted_norm_trace_passes(l, &bt))
+                .map(|(x, tr)| x + tr)
+                .sum();
+            black_box(s)
+        })
+    });
+    group.bench_function("one forward, one backward pass (now)", |b| {
+        b.iter(|| {
+            let s: f64 = lams
+                .iter()
+                .filter_map(|&l| t.shifted_norm_trace(l, &bt))
+                .map(|(x, tr)| x + tr)
+                .sum();
+            black_box(s)
+        })
+    });
+    group.finish();
     // the reduction as the kernel form ran it before (the lower triangle copied into a new,
     // padded faer matrix: 8 MB of first-touch pages) against in the kernel's own storage
     // (`Tridiagonal::from_lower`, now); each iteration starts from a fresh copy of the kernel,
