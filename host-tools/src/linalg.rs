@@ -1139,6 +1139,26 @@ mod tridiagonal_tests {
         }
     }
 
+    /// Reducing in the matrix's own storage reads only its lower triangle and gives the
+    /// reduction of the copy, to the bit (faer's code on the same numbers).
+    #[test]
+    fn from_lower_equals_the_copy_and_ignores_the_upper_triangle() {
+        for n in [1usize, 2, 7, 64] {
+            let a = test_matrix(n);
+            let mut junk = a.clone();
+            for j in 0..n {
+                for i in 0..j {
+                    junk[(i, j)] = f64::NAN;
+                }
+            }
+            let t = Tridiagonal::new(&a);
+            let u = Tridiagonal::from_lower(junk);
+            assert_eq!((&t.diag, &t.sub), (&u.diag, &u.sub), "{n}");
+            let b = DMatrix::from_fn(n, 2, |i, j| (i as f64 * 0.3 + j as f64).cos());
+            assert_eq!(t.to_tridiagonal(&b), u.to_tridiagonal(&b), "{n}");
+        }
+    }
+
     #[test]
     fn tridiagonal_norm_trace_and_largest_eigenvalue() {
         let n = 50;
