@@ -11,6 +11,11 @@
 //! `dual_gamma_kz_matrix_with`) on one thread against two, in the same run, on B2 N = 75
 //! p = 5, B3 N = 250 p = 8 and B1 N = 1000 p = 5; it sets `pbsid::SWEEP_SPLIT_MIN_WORK`.
 //!
+//! Group `sweep_after_reduction` (issue 16, whole process): the sweep of eq. (25) on two
+//! threads as a B1 p = 5 fit runs it, right after the tridiagonal reduction of the 995 x 995
+//! kernel on faer's pool (untimed), with the second half on a scoped thread of its own
+//! (before) against both halves on that pool (now), in the same run.
+//!
 //! `cargo bench -p lpvid-host --bench kernel -- --warm-up-time 1 --measurement-time 3`
 
 #[path = "kernel/explicit.rs"]
@@ -117,5 +122,61 @@ fn sweep_threads(c: &mut Criterion) {
     group.finish();
 }
 
-criterion_group!(benches, kernel_construction, sweep_threads);
+fn sweep_after_reduction(c: &mut Criterion) {
+    let sig = systems::b1(1000, 0.1, 1).train;
+    let p = 5usize;
+    let (r, l, s) = (sig.u.ncols(), sig.y.ncols(), sig.p.ncols());
+    let rows = explicit::slab_rows(&sig);
+    let slab = Slab::new(&rows, r, l, s + 1).unwrap();
+    let dims = PbsidDims::new(r, l, s, p).unwrap();
+    let nb = sig.len() - p;
+    let g = lpvid_host::pbsid::dual_kernel_matrix(&slab, p, nb, true);
+    let alpha = nalgebra::DMatrix::from_fn(l, nb, |j, a| ((j * nb + a) as f64 * 0.37).cos());
+    type Sweep = fn(
+        &PbsidDims,
+        usize,
+        &Slab<'_, f64>,
+        &nalgebra::DMatrix<f64>,
+        usize,
+        usize,
+    ) -> nalgebra::DMatrix<f64>;
+    let cases: [(&str, Sweep); 2] = [
+        (
+            "Gamma K Z, scoped second thread (before)",
+            lpvid_host::pbsid::dual::dual_gamma_kz_matrix_scoped,
+        ),
+        (
+            "Gamma K Z, both halves on the pool (now)",
+            lpvid_host::pbsid::dual_gamma_kz_matrix_with,
+        ),
+    ];
+    assert_eq!(
+        cases[0].1(&dims, p, &slab, &alpha, nb + 1, 2),
+        cases[1].1(&dims, p, &slab, &alpha, nb + 1, 2)
+    );
+    let mut group = c.benchmark_group("sweep_after_reduction");
+    group.sample_size(10);
+    for (name, sweep) in cases {
+        group.bench_function(BenchmarkId::new(name, "B1 N=1000 p=5"), |b| {
+            b.iter_custom(|iters| {
+                let mut total = std::time::Duration::ZERO;
+                for _ in 0..iters {
+                    black_box(lpvid_host::linalg::Tridiagonal::new(&g).dim());
+                    let t = std::time::Instant::now();
+                    black_box(sweep(&dims, p, &slab, &alpha, nb + 1, 2));
+                    total += t.elapsed();
+                }
+                total
+            })
+        });
+    }
+    group.finish();
+}
+
+criterion_group!(
+    benches,
+    kernel_construction,
+    sweep_threads,
+    sweep_after_reduction
+);
 criterion_main!(benches);

@@ -162,6 +162,76 @@ fn ridge_step(c: &mut Criterion) {
         })
     });
     group.finish();
+    // one GCV evaluation (RSS and trace at a lambda) as separate factor / solve / trace
+    // passes (before) and fused into one forward and one backward pass (now): 100 lambdas
+    // over the range GCV searches, same tridiagonal, same run
+    let t = Tridiagonal::new(&g);
+    let bt = t.to_tridiagonal(&y);
+    let vmax = t.largest_eigenvalue();
+    let lams: Vec<f64> = (0..100)
+        .map(|e| vmax * 10f64.powf(-14.0 + 0.15 * e as f64))
+        .collect();
+    let mut group = c.benchmark_group("gcv_100_evaluations_B1_p5_kernel995");
+    group.sample_size(20);
+    group.bench_function("factor, solves, trace (before)", |b| {
+        b.iter(|| {
+            let s: f64 = lams
+                .iter()
+                .filter_map(|&l| t.shifted_norm_trace_passes(l, &bt))
+                .map(|(x, tr)| x + tr)
+                .sum();
+            black_box(s)
+        })
+    });
+    group.bench_function("one forward, one backward pass (now)", |b| {
+        b.iter(|| {
+            let s: f64 = lams
+                .iter()
+                .filter_map(|&l| t.shifted_norm_trace(l, &bt))
+                .map(|(x, tr)| x + tr)
+                .sum();
+            black_box(s)
+        })
+    });
+    group.finish();
+    // the reduction as the kernel form ran it before (the lower triangle copied into a new,
+    // padded faer matrix: 8 MB of first-touch pages) against in the kernel's own storage
+    // (`Tridiagonal::from_lower`, now); each iteration starts from a fresh copy of the kernel,
+    // as the fit has one, in both
+    let mut group = c.benchmark_group("tridiagonal_copy_vs_in_place_B1_p5_kernel995");
+    group.sample_size(10);
+    group.bench_function("copy into a faer matrix (before)", |b| {
+        b.iter(|| {
+            use faer::dyn_stack::{MemBuffer, MemStack};
+            use faer::linalg::evd::tridiag;
+            let g = g.clone();
+            let n = g.nrows();
+            let par = lpvid_host::linalg::par_for(n);
+            let mut m = faer::Mat::<f64>::zeros(n, n);
+            for j in 0..n {
+                m.col_as_slice_mut(j)[j..].copy_from_slice(&g.column(j).as_slice()[j..]);
+            }
+            let bs = faer::linalg::qr::no_pivoting::factor::recommended_block_size::<f64>(n, n);
+            let mut h = faer::Mat::<f64>::zeros(bs, n - 1);
+            let mut buf = MemBuffer::new(tridiag::tridiag_in_place_scratch::<f64>(
+                n,
+                par,
+                Default::default(),
+            ));
+            tridiag::tridiag_in_place(
+                m.as_mut(),
+                h.as_mut(),
+                par,
+                MemStack::new(&mut buf),
+                Default::default(),
+            );
+            black_box(m[(1, 0)])
+        })
+    });
+    group.bench_function("in the kernel's storage (now)", |b| {
+        b.iter(|| black_box(Tridiagonal::from_lower(g.clone()).dim()))
+    });
+    group.finish();
 }
 
 /// BPDN-SV fit time on B2 (N = 75, 25 dB) against Tikhonov-GCV on the same data; the

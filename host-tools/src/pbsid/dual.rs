@@ -13,9 +13,11 @@ use nalgebra::DMatrix;
 
 use super::error::FitError;
 use super::realize::states_from_gkz;
-use super::ridge::{ridge_solve, NormalForm, RegressionInfo};
+use super::ridge::{ridge_eig, ridge_solve, ridge_tridiagonal, NormalForm, RegressionInfo};
 use super::settings::PbsidOptions;
+use super::settings::Reg;
 use crate::kernel_sweep::{dot4, KernelSweep};
+use crate::linalg::Tridiagonal;
 
 /// Dual path (Algorithm 2): kernel Z^T Z + U^T U by Theorem 10, alpha from (19)-(21)
 /// (Tikhonov-regularised if asked), Gamma^p K^p Z by eq. (25), and the state candidates
@@ -32,16 +34,29 @@ pub(crate) fn dual_states(
     if let Some(rows) = opts.kernel_rows {
         return selected_rows_states(dims, f, slab, windows, rows, opts);
     }
-    let g = dual_kernel_matrix(slab, p, nb, opts.feedthrough);
     let y = DMatrix::from_fn(l, nb, |j, k| slab.y(k + p)[j]);
-    let (x, info) = ridge_solve(
-        &g,
-        &y.transpose(),
-        NormalForm::Dual,
-        y.norm_squared(),
-        nb as f64,
-        opts.reg,
-    )?;
+    let (yt, total, rows) = (y.transpose(), y.norm_squared(), nb as f64);
+    // Tikhonov needs only the kernel's lower triangle, reduced in its own storage
+    let solved = match opts.reg {
+        Reg::TikhonovGcv | Reg::Tikhonov(_) => {
+            let tri = Tridiagonal::from_lower(dual_kernel_lower(slab, p, nb, opts.feedthrough));
+            ridge_tridiagonal(&tri, &yt, NormalForm::Dual, total, rows, opts.reg)?
+        }
+        _ => None,
+    };
+    let (x, info) = match solved {
+        Some(done) => done,
+        // minimum norm, or a ridge parameter too small for the shifted solve: the whole
+        // kernel (the same bits again) and its eigendecomposition
+        None => ridge_eig(
+            &dual_kernel_matrix(slab, p, nb, opts.feedthrough),
+            &yt,
+            NormalForm::Dual,
+            total,
+            rows,
+            opts.reg,
+        )?,
+    };
     let alpha = x.transpose(); // l x nb
     let gkz = dual_gamma_kz_matrix(dims, f, slab, &alpha, nb + 1);
     let (sv, x) = states_from_gkz(&gkz, nb)?;
@@ -183,15 +198,25 @@ pub fn sweep_workers(work: f64) -> usize {
 }
 
 /// Run `job(columns, out)` over the column range `0..cols` of a column-major output of
-/// `rows` rows: on the calling thread (`workers` 1), or split at `cut` with the columns
-/// `cut..cols` on a second thread (`workers` 2). Each part writes only its own columns, so
-/// the result does not depend on the split.
+/// `rows` rows: on the calling thread (`workers` 1), or split at `cut` with the two parts on
+/// two threads (`workers` 2): faer's thread pool when `pool` (now), else the calling thread
+/// and a scoped thread of its own (before). Each part writes only its own columns, so the
+/// result does not depend on the split or the threads.
+///
+/// Why the pool: in a kernel-form fit the sweeps run just before and just after the
+/// tridiagonal reduction of the kernel, which runs on faer's (rayon) pool from
+/// [`crate::linalg::PAR_MIN_DIM`] rows on. Its two workers, out of work, keep spinning in
+/// `sched_yield` for a while; two threads of our own then share the two cores with them.
+/// Handing both halves to the pool instead gives them to those very workers (B1 N = 1000
+/// p = 5, whole process under a load of 10: Gamma K Z 29-86 ms -> 7-12 ms;
+/// `benches/kernel.rs`, group `sweep_after_reduction`).
 fn split_columns(
     out: &mut [f64],
     rows: usize,
     cols: usize,
     cut: usize,
     workers: usize,
+    pool: bool,
     job: impl Fn(std::ops::Range<usize>, &mut [f64]) + Sync,
 ) {
     let cut = cut.min(cols);
@@ -200,8 +225,16 @@ fn split_columns(
         return;
     }
     let (first, second) = out.split_at_mut(cut * rows);
+    let job = &job;
+    if pool {
+        faer::utils::thread::join_raw(
+            move |_| job(0..cut, first),
+            move |_| job(cut..cols, second),
+            faer::Par::rayon(2),
+        );
+        return;
+    }
     std::thread::scope(|sc| {
-        let job = &job;
         let h = sc.spawn(move || job(cut..cols, second));
         job(0..cut, first);
         h.join().unwrap_or_else(|e| std::panic::resume_unwind(e));
@@ -235,6 +268,32 @@ pub fn dual_gamma_kz_matrix_with(
     cols: usize,
     workers: usize,
 ) -> DMatrix<f64> {
+    gamma_kz(dims, f, slab, alpha, cols, workers, true)
+}
+
+/// [`dual_gamma_kz_matrix_with`] with the second half on a scoped thread of its own instead
+/// of the pool, as before (the same bits; `benches/kernel.rs` compares the two).
+#[doc(hidden)]
+pub fn dual_gamma_kz_matrix_scoped(
+    dims: &PbsidDims,
+    f: usize,
+    slab: &Slab<'_, f64>,
+    alpha: &DMatrix<f64>,
+    cols: usize,
+    workers: usize,
+) -> DMatrix<f64> {
+    gamma_kz(dims, f, slab, alpha, cols, workers, false)
+}
+
+fn gamma_kz(
+    dims: &PbsidDims,
+    f: usize,
+    slab: &Slab<'_, f64>,
+    alpha: &DMatrix<f64>,
+    cols: usize,
+    workers: usize,
+    pool: bool,
+) -> DMatrix<f64> {
     let (p, l) = (dims.p, dims.l);
     let nb = alpha.ncols();
     // alpha row by row, contiguous
@@ -260,7 +319,7 @@ pub fn dual_gamma_kz_matrix_with(
             });
         }
     };
-    split_columns(out.as_mut_slice(), rows, cols, cols / 2, workers, job);
+    split_columns(out.as_mut_slice(), rows, cols, cols / 2, workers, pool, job);
     out
 }
 
@@ -286,33 +345,84 @@ pub fn dual_kernel_matrix_with(
     feedthrough: bool,
     workers: usize,
 ) -> DMatrix<f64> {
+    kernel_matrix(slab, p, nb, feedthrough, workers, true)
+}
+
+/// [`dual_kernel_matrix_with`] with the second half on a scoped thread of its own instead
+/// of the pool, as before (the same bits; `benches/kernel.rs` compares the two).
+#[doc(hidden)]
+pub fn dual_kernel_matrix_scoped(
+    slab: &Slab<'_, f64>,
+    p: usize,
+    nb: usize,
+    feedthrough: bool,
+    workers: usize,
+) -> DMatrix<f64> {
+    kernel_matrix(slab, p, nb, feedthrough, workers, false)
+}
+
+fn kernel_matrix(
+    slab: &Slab<'_, f64>,
+    p: usize,
+    nb: usize,
+    feedthrough: bool,
+    workers: usize,
+    pool: bool,
+) -> DMatrix<f64> {
+    let mut g = kernel_lower(slab, p, nb, feedthrough, workers, pool);
+    for b in 0..nb {
+        for a in 0..b {
+            g[(a, b)] = g[(b, a)];
+        }
+    }
+    g
+}
+
+/// The lower triangle of [`dual_kernel_matrix`] (the strict upper one zero), all a
+/// Tikhonov ridge step needs ([`crate::linalg::Tridiagonal::from_lower`]). Column b is the
+/// sweep around window b over the starts s >= b: entry (s, b) has the same bits as entry
+/// (b, s) of the sweep over s <= b (the sample Gram matrices are symmetric to the bit and
+/// Theorem 10 sums in the same order), so the full matrix is this one mirrored.
+pub(crate) fn dual_kernel_lower(
+    slab: &Slab<'_, f64>,
+    p: usize,
+    nb: usize,
+    feedthrough: bool,
+) -> DMatrix<f64> {
+    let work = (nb * nb / 2 * p) as f64;
+    kernel_lower(slab, p, nb, feedthrough, sweep_workers(work), true)
+}
+
+fn kernel_lower(
+    slab: &Slab<'_, f64>,
+    p: usize,
+    nb: usize,
+    feedthrough: bool,
+    workers: usize,
+    pool: bool,
+) -> DMatrix<f64> {
     let mut g = DMatrix::<f64>::zeros(nb, nb);
-    // column b holds b + 1 entries: the first nb / sqrt(2) columns are half the work
-    let cut = (nb as f64 / std::f64::consts::SQRT_2).round() as usize;
+    // column b holds nb - b entries: the first nb (1 - 1/sqrt(2)) columns are half the work
+    let cut = (nb as f64 * (1.0 - std::f64::consts::FRAC_1_SQRT_2)).round() as usize;
     let job = |range: std::ops::Range<usize>, dst: &mut [f64]| {
         let mut sweep = KernelSweep::new(slab, p);
         let first = range.start;
         for b in range {
             let col = &mut dst[(b - first) * nb..(b - first + 1) * nb];
-            sweep.window(b, 0, b + 1, |t, ks| {
+            sweep.window(b, b as isize, nb - b, |t, ks| {
                 if t == 0 {
-                    col[..=b].copy_from_slice(ks);
+                    col[b..].copy_from_slice(ks);
                 }
             });
             if feedthrough {
                 let ub = slab.u(b + p);
-                for (a, v) in col[..=b].iter_mut().enumerate() {
+                for (a, v) in col.iter_mut().enumerate().skip(b) {
                     *v += lpvid::real::dot(slab.u(a + p), ub);
                 }
             }
         }
     };
-    split_columns(g.as_mut_slice(), nb, nb, cut, workers, job);
-    for b in 0..nb {
-        for a in 0..b {
-            g[(b, a)] = g[(a, b)];
-        }
-    }
+    split_columns(g.as_mut_slice(), nb, nb, cut, workers, pool, job);
     g
 }
 
@@ -321,8 +431,8 @@ mod tests {
     use super::*;
     use lpvid::kernel::shifted_kernel;
 
-    /// Both sweeps give the same matrices on one thread and on two (each column is computed
-    /// by the same code whichever thread runs it).
+    /// Both sweeps give the same matrices on one thread and on two, on the pool or on a
+    /// scoped thread (each column is computed by the same code whichever thread runs it).
     #[test]
     fn sweeps_on_two_threads_equal_one() {
         let (r, l, s, p) = (1usize, 2usize, 1usize, 3usize);
@@ -335,12 +445,23 @@ mod tests {
             let one = dual_kernel_matrix_with(&slab, p, nb, ft, 1);
             let two = dual_kernel_matrix_with(&slab, p, nb, ft, 2);
             assert_eq!(one, two);
+            assert_eq!(one, dual_kernel_matrix_scoped(&slab, p, nb, ft, 2));
+            // the lower triangle alone, to the bit; the full matrix symmetric
+            let lower = dual_kernel_lower(&slab, p, nb, ft);
+            assert_eq!(lower.lower_triangle(), one.lower_triangle());
+            assert_eq!(
+                lower.upper_triangle(),
+                DMatrix::from_diagonal(&one.diagonal())
+            );
+            assert_eq!(one, one.transpose());
             assert!(one.iter().any(|v| *v != 0.0));
         }
         let alpha = DMatrix::from_fn(l, nb, |j, a| ((j * nb + a) as f64 * 0.37).cos());
         let one = dual_gamma_kz_matrix_with(&dims, p, &slab, &alpha, nb + 1, 1);
         let two = dual_gamma_kz_matrix_with(&dims, p, &slab, &alpha, nb + 1, 2);
         assert_eq!(one, two);
+        let base = dual_gamma_kz_matrix_scoped(&dims, p, &slab, &alpha, nb + 1, 2);
+        assert_eq!(one, base);
         assert_eq!(sweep_workers(0.0), 1);
     }
 

@@ -139,7 +139,23 @@ pub(crate) fn ridge_solve(
     rows: f64,
     reg: Reg,
 ) -> Result<(DMatrix<f64>, RegressionInfo), FitError> {
-    let spectrum = |vals: &[f64], proj: &DMatrix<f64>| Spectrum {
+    if matches!(reg, Reg::TikhonovGcv | Reg::Tikhonov(_)) {
+        if let Some(done) = ridge_tridiagonal(&Tridiagonal::new(a), b, form, total, rows, reg)? {
+            return Ok(done);
+        }
+    }
+    ridge_eig(a, b, form, total, rows, reg)
+}
+
+/// The common [`Spectrum`] from eigenvalues and the targets' eigen-coordinates.
+fn spectrum(
+    form: NormalForm,
+    vals: &[f64],
+    proj: &DMatrix<f64>,
+    total: f64,
+    rows: f64,
+) -> Spectrum {
+    Spectrum {
         energy: vals
             .iter()
             .enumerate()
@@ -155,47 +171,74 @@ pub(crate) fn ridge_solve(
         vals: vals.to_vec(),
         total,
         rows,
+    }
+}
+
+/// The Tikhonov ridge step of [`ridge_solve`] on A already reduced to tridiagonal form:
+/// lambda by `reg` (GCV over the spectrum), then one shifted tridiagonal solve. None when
+/// lambda is below [`SHIFTED_SOLVE_MIN`] of the largest eigenvalue or T + lambda I is not
+/// numerically positive definite: the caller then solves by [`ridge_eig`].
+pub(crate) fn ridge_tridiagonal(
+    tri: &Tridiagonal,
+    b: &DMatrix<f64>,
+    form: NormalForm,
+    total: f64,
+    rows: f64,
+    reg: Reg,
+) -> Result<Option<(DMatrix<f64>, RegressionInfo)>, FitError> {
+    let bt = tri.to_tridiagonal(b);
+    let (lam, dof, vmax) = match form {
+        NormalForm::Primal => {
+            // the primal residual needs the energies b_i^2 / lambda_i: eigen-coordinates
+            let (vals, proj) = tri.eigen_projection(&bt)?;
+            let (lam, dof, _) = choose_lambda(reg, &spectrum(form, &vals, &proj, total, rows));
+            (lam, dof, vals.first().copied().unwrap_or(0.0).max(0.0))
+        }
+        NormalForm::Dual => {
+            // RSS = lam^2 ||(T + lam I)^{-1} Q^T y||^2 and rows - dof =
+            // lam tr((T + lam I)^{-1}): O(n) per lambda, no eigenvalues needed
+            let vmax = tri.largest_eigenvalue().max(0.0);
+            let curve = |lam: f64| {
+                tri.shifted_norm_trace(lam, &bt)
+                    .map(|(xx, tr)| (lam * lam * xx, lam * tr))
+            };
+            let lam = match reg {
+                Reg::Tikhonov(rel) => rel * vmax,
+                _ => gcv_minimiser(vmax, |lam| match curve(lam) {
+                    Some((rss, deficit)) if deficit > 0.0 => rows * rss / (deficit * deficit),
+                    _ => f64::INFINITY,
+                }),
+            };
+            let dof = curve(lam).map_or(f64::NAN, |(_, deficit)| rows - deficit);
+            (lam, dof, vmax)
+        }
     };
-    let tikhonov = matches!(reg, Reg::TikhonovGcv | Reg::Tikhonov(_));
-    if tikhonov {
-        let tri = Tridiagonal::new(a);
-        let bt = tri.to_tridiagonal(b);
-        let (lam, dof, vmax) = match form {
-            NormalForm::Primal => {
-                // the primal residual needs the energies b_i^2 / lambda_i: eigen-coordinates
-                let (vals, proj) = tri.eigen_projection(&bt)?;
-                let (lam, dof, _) = choose_lambda(reg, &spectrum(&vals, &proj));
-                (lam, dof, vals.first().copied().unwrap_or(0.0).max(0.0))
-            }
-            NormalForm::Dual => {
-                // RSS = lam^2 ||(T + lam I)^{-1} Q^T y||^2 and rows - dof =
-                // lam tr((T + lam I)^{-1}): O(n) per lambda, no eigenvalues needed
-                let vmax = tri.largest_eigenvalue().max(0.0);
-                let curve = |lam: f64| {
-                    tri.shifted_norm_trace(lam, &bt)
-                        .map(|(xx, tr)| (lam * lam * xx, lam * tr))
-                };
-                let lam = match reg {
-                    Reg::Tikhonov(rel) => rel * vmax,
-                    _ => gcv_minimiser(vmax, |lam| match curve(lam) {
-                        Some((rss, deficit)) if deficit > 0.0 => rows * rss / (deficit * deficit),
-                        _ => f64::INFINITY,
-                    }),
-                };
-                let dof = curve(lam).map_or(f64::NAN, |(_, deficit)| rows - deficit);
-                (lam, dof, vmax)
-            }
-        };
-        if lam > SHIFTED_SOLVE_MIN * vmax && dof.is_finite() {
-            if let Some(w) = tri.solve_shifted(lam, &bt) {
-                let lambda = Some((lam, vmax));
-                return Ok((tri.from_tridiagonal(&w), RegressionInfo { lambda, dof }));
-            }
+    if lam > SHIFTED_SOLVE_MIN * vmax && dof.is_finite() {
+        if let Some(w) = tri.solve_shifted(lam, &bt) {
+            let lambda = Some((lam, vmax));
+            return Ok(Some((
+                tri.from_tridiagonal(&w),
+                RegressionInfo { lambda, dof },
+            )));
         }
     }
+    Ok(None)
+}
+
+/// The ridge step of [`ridge_solve`] by the full symmetric eigendecomposition of A (the
+/// minimum-norm solution, and Tikhonov where [`ridge_tridiagonal`] declines).
+pub(crate) fn ridge_eig(
+    a: &DMatrix<f64>,
+    b: &DMatrix<f64>,
+    form: NormalForm,
+    total: f64,
+    rows: f64,
+    reg: Reg,
+) -> Result<(DMatrix<f64>, RegressionInfo), FitError> {
+    let tikhonov = matches!(reg, Reg::TikhonovGcv | Reg::Tikhonov(_));
     let (vals, vecs) = sym_eig(a)?;
     let mut proj = vecs.transpose() * b;
-    let (lam, dof, cut) = choose_lambda(reg, &spectrum(&vals, &proj));
+    let (lam, dof, cut) = choose_lambda(reg, &spectrum(form, &vals, &proj, total, rows));
     for (i, &v) in vals.iter().enumerate() {
         proj.row_mut(i).scale_mut(filter(v, lam, cut));
     }
