@@ -601,6 +601,24 @@ fn positive_finite(v: f64) -> bool {
     v.is_finite() && v > 0.0
 }
 
+/// Up to this dimension a tridiagonal reduction keeps its Householder reflectors one by one
+/// ([`tridiagonal_block_size`]).
+pub const TRIDIAG_UNBLOCKED_MAX: usize = 128;
+
+/// Block size of the Householder factors kept by [`Tridiagonal`]: faer's recommendation,
+/// except up to [`TRIDIAG_UNBLOCKED_MAX`] rows, where faer's block is only 8 reflectors and
+/// [`Tridiagonal`] applies them to a few right-hand sides: one by one (block size 1) there is
+/// no triangular factor to build, and no call reaches faer's large matrix product, whose
+/// first use in a process reads the cache sizes from about a hundred sysfs files (0.6-1 ms,
+/// most of the wait of a B2 fit; [`prefetch_matmul_setup`]). The same reflectors either way.
+pub fn tridiagonal_block_size(n: usize) -> usize {
+    if n <= TRIDIAG_UNBLOCKED_MAX {
+        1
+    } else {
+        faer::linalg::qr::no_pivoting::factor::recommended_block_size::<f64>(n, n)
+    }
+}
+
 /// A symmetric matrix reduced once to tridiagonal form, A = Q T Q^T (blocked Householder,
 /// faer). What a ridge regression with a parameter chosen by GCV needs then costs O(n^2):
 /// the eigenvalues with the eigen-coordinates V^T Q^T B of a few right-hand sides (implicit
@@ -634,7 +652,7 @@ impl Tridiagonal {
         for j in 0..n {
             m.col_as_slice_mut(j)[j..].copy_from_slice(&a.column(j).as_slice()[j..]);
         }
-        let bs = faer::linalg::qr::no_pivoting::factor::recommended_block_size::<f64>(n, n);
+        let bs = tridiagonal_block_size(n);
         let mut h = faer::Mat::<f64>::zeros(bs.max(1), n.saturating_sub(1));
         if n > 0 {
             let mut buf = MemBuffer::new(tridiag::tridiag_in_place_scratch::<f64>(

@@ -8,7 +8,7 @@ use serde_json::{json, Value};
 
 use super::files::{check_paths, Outputs};
 use super::{fmt_list, print_json, print_warnings, CliError, Ui};
-use crate::data::Dataset;
+use crate::data::{DataError, Dataset};
 use crate::observer::{self, ObserverRequest};
 use crate::pbsid::{self, BpdnScore, Order, PbsidOptions, Reg, Solver};
 use crate::pipeline::{self, reg_name, DataFile, Identified, PbsidSettings};
@@ -260,12 +260,6 @@ pub(super) fn run(a: &PbsidArgs, ui: Ui, out: &mut dyn Write) -> Result<(), CliE
     let (Some(train_path), Some(past)) = (&a.train, a.past) else {
         return super::stats::run_pbsid(a, ui, out);
     };
-    // BPDN-SV's matrices are small (B2 p = 5 and 8 never reach faer's large product; the
-    // set-up thread was 1.1-1.7 ms of their 9-10 ms CPU): the product's set-up, if any, runs
-    // at its first use there
-    if a.reg != Reg::BpdnSv {
-        crate::linalg::prefetch_matmul_setup();
-    }
     let mut inputs = vec![("--train", train_path.as_path())];
     if let Some(v) = &a.val {
         inputs.push(("--val", v.as_path()));
@@ -282,38 +276,72 @@ pub(super) fn run(a: &PbsidArgs, ui: Ui, out: &mut dyn Write) -> Result<(), CliE
             },
         },
     };
+    // BPDN-SV's matrices are small (B2 p = 5 and 8 never reach faer's large product; the
+    // set-up thread was 1.1-1.7 ms of their 9-10 ms CPU), and so are the other fits of at
+    // most TRIDIAG_UNBLOCKED_MAX windows in the kernel form: the product's set-up, if any,
+    // runs at its first use there
+    let prefetch = |rows: usize| {
+        if a.reg != Reg::BpdnSv && rows > crate::linalg::TRIDIAG_UNBLOCKED_MAX + past {
+            crate::linalg::prefetch_matmul_setup();
+        }
+    };
     let spin = ui.spinner(&format!("reading {}", train_path.display()));
-    let val = match &a.val {
-        Some(p) => {
-            spin.set_message(format!("reading {}", p.display()));
-            Some(Dataset::read_csv(p)?)
-        }
-        None => None,
-    };
-    // a large training file with options that need only the statistics is streamed in
-    // chunks (constant memory); anything else, and any trouble, reads it whole
-    let streamed = if crate::stream::should_stream(train_path, &settings) {
-        spin.set_message(format!(
-            "fitting LPV-PBSID_opt (p = {past}) streaming {}",
-            train_path.display()
-        ));
-        crate::stream::identify_streaming(train_path, val.as_ref(), &settings)
-    } else {
-        None
-    };
-    let run = match streamed {
-        Some(run) => Ok(run),
-        None => {
-            spin.set_message(format!("reading {}", train_path.display()));
-            let train = DataFile::read(train_path)?;
+    let run = std::thread::scope(|sc| {
+        // the validation file is parsed on a second thread while the training file is read
+        // and parsed when a core is to spare (a thread waiting for a busy core would stall
+        // the join), else first; its errors come first either way
+        let (val_job, val_first) = match &a.val {
+            Some(p) if crate::linalg::spare_core() => {
+                (Some(sc.spawn(move || Dataset::read_csv(p))), None)
+            }
+            Some(p) => (None, Some(Dataset::read_csv(p)?)),
+            None => (None, None),
+        };
+        type ValJob<'s> = std::thread::ScopedJoinHandle<'s, Result<Dataset, DataError>>;
+        let join_val = |job: Option<ValJob<'_>>| match job {
+            Some(j) => j
+                .join()
+                .unwrap_or_else(|e| std::panic::resume_unwind(e))
+                .map(Some),
+            None => Ok(val_first),
+        };
+        // a large training file with options that need only the statistics is streamed in
+        // chunks (constant memory); anything else, and any trouble, reads it whole
+        if crate::stream::should_stream(train_path, &settings) {
+            prefetch(usize::MAX);
+            let val = join_val(val_job)?;
             spin.set_message(format!(
-                "fitting LPV-PBSID_opt (p = {}, {} samples)",
-                past,
-                train.data.len()
+                "fitting LPV-PBSID_opt (p = {past}) streaming {}",
+                train_path.display()
             ));
-            pipeline::identify(&train, val.as_ref(), &settings)
+            if let Some(run) =
+                crate::stream::identify_streaming(train_path, val.as_ref(), &settings)
+            {
+                return Ok(run);
+            }
+            let train = DataFile::read(train_path)?;
+            return Ok(pipeline::identify(&train, val.as_ref(), &settings)?);
         }
-    };
+        let train = crate::data::read_input(train_path).and_then(|bytes| {
+            // the header and the data rows (a bound: blank lines are counted too)
+            prefetch(
+                bytes
+                    .iter()
+                    .filter(|&&b| b == b'\n')
+                    .count()
+                    .saturating_sub(1),
+            );
+            DataFile::from_read_input(train_path, bytes)
+        });
+        let val = join_val(val_job)?;
+        let train = train?;
+        spin.set_message(format!(
+            "fitting LPV-PBSID_opt (p = {}, {} samples)",
+            past,
+            train.data.len()
+        ));
+        Ok::<_, CliError>(pipeline::identify(&train, val.as_ref(), &settings)?)
+    });
     spin.finish_and_clear();
     let run = run?;
     let mut outputs = Outputs::default();
