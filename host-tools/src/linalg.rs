@@ -241,7 +241,14 @@ pub const SPLIT_MIN_WORK: f64 = 5e7;
 /// Whether accumulating `count` vectors of length `len` gains from two threads.
 pub fn split_pays(len: usize, count: usize) -> bool {
     let work = count as f64 * (len * len) as f64 / 2.0;
-    work >= SPLIT_MIN_WORK && std::thread::available_parallelism().is_ok_and(|n| n.get() >= 2)
+    work >= SPLIT_MIN_WORK && cores() >= 2
+}
+
+/// `std::thread::available_parallelism` (1 if unknown), asked once per process: on Linux
+/// each call reads the cgroup's CPU quota (three files, 40-60 us of a 3 ms process).
+pub fn cores() -> usize {
+    static CORES: std::sync::OnceLock<usize> = std::sync::OnceLock::new();
+    *CORES.get_or_init(|| std::thread::available_parallelism().map_or(1, |n| n.get()))
 }
 
 /// Whether a second thread is likely to get a core of its own now: at least two cores and a
@@ -250,7 +257,7 @@ pub fn split_pays(len: usize, count: usize) -> bool {
 /// the thread it runs on (never for a split of sums, whose rounding would then depend on
 /// the load).
 pub fn spare_core() -> bool {
-    let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
+    let cores = cores();
     if cores < 2 {
         return false;
     }
