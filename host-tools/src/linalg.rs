@@ -651,6 +651,12 @@ impl Tridiagonal {
 
     /// As [`Tridiagonal::new`] with the parallelism given (the benches compare both).
     pub fn new_with(a: &DMatrix<f64>, par: faer::Par) -> Tridiagonal {
+        Self::new_blocked(a, par, tridiagonal_block_size(a.nrows()))
+    }
+
+    /// As [`Tridiagonal::new_with`] keeping the reflectors in blocks of `bs` (at least 1;
+    /// the benches compare faer's recommendation with [`tridiagonal_block_size`]).
+    pub fn new_blocked(a: &DMatrix<f64>, par: faer::Par, bs: usize) -> Tridiagonal {
         use faer::dyn_stack::{MemBuffer, MemStack};
         use faer::linalg::evd::tridiag;
         let n = a.nrows();
@@ -659,7 +665,6 @@ impl Tridiagonal {
         for j in 0..n {
             m.col_as_slice_mut(j)[j..].copy_from_slice(&a.column(j).as_slice()[j..]);
         }
-        let bs = tridiagonal_block_size(n);
         let mut h = faer::Mat::<f64>::zeros(bs.max(1), n.saturating_sub(1));
         if n > 0 {
             let mut buf = MemBuffer::new(tridiag::tridiag_in_place_scratch::<f64>(
