@@ -241,7 +241,14 @@ pub const SPLIT_MIN_WORK: f64 = 5e7;
 /// Whether accumulating `count` vectors of length `len` gains from two threads.
 pub fn split_pays(len: usize, count: usize) -> bool {
     let work = count as f64 * (len * len) as f64 / 2.0;
-    work >= SPLIT_MIN_WORK && std::thread::available_parallelism().is_ok_and(|n| n.get() >= 2)
+    work >= SPLIT_MIN_WORK && cores() >= 2
+}
+
+/// `std::thread::available_parallelism` (1 if unknown), asked once per process: on Linux
+/// each call reads the cgroup's CPU quota (three files, 40-60 us of a 3 ms process).
+pub fn cores() -> usize {
+    static CORES: std::sync::OnceLock<usize> = std::sync::OnceLock::new();
+    *CORES.get_or_init(|| std::thread::available_parallelism().map_or(1, |n| n.get()))
 }
 
 /// Whether a second thread is likely to get a core of its own now: at least two cores and a
@@ -250,7 +257,7 @@ pub fn split_pays(len: usize, count: usize) -> bool {
 /// the thread it runs on (never for a split of sums, whose rounding would then depend on
 /// the load).
 pub fn spare_core() -> bool {
-    let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
+    let cores = cores();
     if cores < 2 {
         return false;
     }
@@ -601,6 +608,24 @@ fn positive_finite(v: f64) -> bool {
     v.is_finite() && v > 0.0
 }
 
+/// Up to this dimension a tridiagonal reduction keeps its Householder reflectors one by one
+/// ([`tridiagonal_block_size`]).
+pub const TRIDIAG_UNBLOCKED_MAX: usize = 128;
+
+/// Block size of the Householder factors kept by [`Tridiagonal`]: faer's recommendation,
+/// except up to [`TRIDIAG_UNBLOCKED_MAX`] rows, where faer's block is only 8 reflectors and
+/// [`Tridiagonal`] applies them to a few right-hand sides: one by one (block size 1) there is
+/// no triangular factor to build, and no call reaches faer's large matrix product, whose
+/// first use in a process reads the cache sizes from about a hundred sysfs files (0.6-1 ms,
+/// most of the wait of a B2 fit; [`prefetch_matmul_setup`]). The same reflectors either way.
+pub fn tridiagonal_block_size(n: usize) -> usize {
+    if n <= TRIDIAG_UNBLOCKED_MAX {
+        1
+    } else {
+        faer::linalg::qr::no_pivoting::factor::recommended_block_size::<f64>(n, n)
+    }
+}
+
 /// A symmetric matrix reduced once to tridiagonal form, A = Q T Q^T (blocked Householder,
 /// faer). What a ridge regression with a parameter chosen by GCV needs then costs O(n^2):
 /// the eigenvalues with the eigen-coordinates V^T Q^T B of a few right-hand sides (implicit
@@ -627,13 +652,19 @@ impl Tridiagonal {
 
     /// As [`Tridiagonal::new`] with the parallelism given (the benches compare both).
     pub fn new_with(a: &DMatrix<f64>, par: faer::Par) -> Tridiagonal {
+        Self::new_blocked(a, par, tridiagonal_block_size(a.nrows()))
+    }
+
+    /// As [`Tridiagonal::new_with`] keeping the reflectors in blocks of `bs` (at least 1;
+    /// the benches compare faer's recommendation with [`tridiagonal_block_size`]).
+    pub fn new_blocked(a: &DMatrix<f64>, par: faer::Par, bs: usize) -> Tridiagonal {
         let n = a.nrows();
         // the lower triangle, column by column (the reduction reads no other entry)
         let mut m = vec![0.0; n * n];
         for j in 0..n {
             m[j * n + j..(j + 1) * n].copy_from_slice(&a.column(j).as_slice()[j..]);
         }
-        Self::reduce(m, n, par)
+        Self::reduce(m, n, par, bs)
     }
 
     /// As [`Tridiagonal::new`], reducing `a` in its own storage: only its lower triangle is
@@ -644,14 +675,14 @@ impl Tridiagonal {
         let n = a.nrows();
         assert_eq!(a.ncols(), n);
         let m = a.data.into();
-        Self::reduce(m, n, par_for(n))
+        Self::reduce(m, n, par_for(n), tridiagonal_block_size(n))
     }
 
-    /// faer's reduction of the column-major n x n `m` (lower triangle) in place.
-    fn reduce(mut m: Vec<f64>, n: usize, par: faer::Par) -> Tridiagonal {
+    /// faer's reduction of the column-major n x n `m` (lower triangle) in place, the
+    /// reflectors kept in blocks of `bs`.
+    fn reduce(mut m: Vec<f64>, n: usize, par: faer::Par, bs: usize) -> Tridiagonal {
         use faer::dyn_stack::{MemBuffer, MemStack};
         use faer::linalg::evd::tridiag;
-        let bs = faer::linalg::qr::no_pivoting::factor::recommended_block_size::<f64>(n, n);
         let mut h = faer::Mat::<f64>::zeros(bs.max(1), n.saturating_sub(1));
         if n > 0 {
             let mut buf = MemBuffer::new(tridiag::tridiag_in_place_scratch::<f64>(

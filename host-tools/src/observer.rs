@@ -1814,8 +1814,22 @@ fn finish_step(
     mut lines: Vec<String>,
     scheduling: Value,
 ) -> ObserverStep {
-    let regions = stability_regions(&model, &sbox, reference, REGION_WIDEN);
-    let max_rho = max_predictor_radius(&model, &sbox, REPORT_GRID);
+    // the regions and the box maximum are independent: with two or more scheduling signals
+    // (a lattice of 21^s points, a millisecond) and a core to spare, side by side (the same
+    // computations either way)
+    let (regions, max_rho) = if sbox.lo.len() >= 2 && crate::linalg::spare_core() {
+        std::thread::scope(|sc| {
+            let rho = sc.spawn(|| max_predictor_radius(&model, &sbox, REPORT_GRID));
+            let regions = stability_regions(&model, &sbox, reference, REGION_WIDEN);
+            let rho = rho.join().unwrap_or_else(|e| std::panic::resume_unwind(e));
+            (regions, rho)
+        })
+    } else {
+        (
+            stability_regions(&model, &sbox, reference, REGION_WIDEN),
+            max_predictor_radius(&model, &sbox, REPORT_GRID),
+        )
+    };
     if !regions.is_empty() {
         lines.push(format!(
             "stability region of the predictor A(mu) - K(mu) C (others at their mean): max spectral radius {max_rho:.4} over the box"

@@ -38,7 +38,12 @@ impl DataFile {
     /// Read and parse `path` (errors name the file, line and column).
     pub fn read(path: &Path) -> Result<DataFile, DataError> {
         // refuses devices that never end and bounds pipes and line lengths
-        let bytes = crate::data::read_input(path)?;
+        Self::from_read_input(path, crate::data::read_input(path)?)
+    }
+
+    /// [`DataFile::read`] of the bytes [`crate::data::read_input`] read from `path` (a
+    /// caller that looks at the bytes before parsing them).
+    pub fn from_read_input(path: &Path, bytes: Vec<u8>) -> Result<DataFile, DataError> {
         let data = Dataset::parse_read_input(&path.display().to_string(), &bytes)?;
         Ok(DataFile {
             path: path.to_path_buf(),

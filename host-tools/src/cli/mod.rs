@@ -160,7 +160,10 @@ where
     keep_freed_memory();
     match cli.command {
         Command::Demo(a) => demo::run(&a, out),
-        Command::Pbsid(a) => pbsid::run(&a, ui, out),
+        Command::Pbsid(a) => {
+            one_heap();
+            pbsid::run(&a, ui, out)
+        }
         Command::Arx(a) => arx::run(&a, out),
         Command::Validate(a) => validate::run_validate(&a, out),
         Command::Simulate(a) => validate::run_simulate(&a, out),
@@ -197,6 +200,28 @@ fn keep_freed_memory() {
                 mallopt(M_TRIM_THRESHOLD, 128 << 20);
             }
         });
+    }
+}
+
+/// One malloc arena for every thread of the process (glibc `mallopt` M_ARENA_MAX = 1; call
+/// before any thread starts): glibc gives each new thread an arena of its own, so the
+/// blocks a worker frees (a Gram half's batch scratch, 3 MB at B1 p = 3) are never reused by
+/// the main thread, whose next matrices cost fresh zeroed pages again. The threads of a fit
+/// allocate per batch or per matrix, not per element (small blocks come from each thread's
+/// cache without the arena's lock). Nothing on other C libraries.
+fn one_heap() {
+    #[cfg(all(target_os = "linux", target_env = "gnu"))]
+    {
+        use std::os::raw::c_int;
+        extern "C" {
+            fn mallopt(param: c_int, value: c_int) -> c_int;
+        }
+        const M_ARENA_MAX: c_int = -8;
+        // SAFETY: glibc's `int mallopt(int, int)`; it only changes how many arenas the
+        // allocator may create (a value it rejects leaves the default).
+        unsafe {
+            mallopt(M_ARENA_MAX, 1);
+        }
     }
 }
 

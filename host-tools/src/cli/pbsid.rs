@@ -8,7 +8,7 @@ use serde_json::{json, Value};
 
 use super::files::{check_paths, Outputs};
 use super::{fmt_list, print_json, print_warnings, CliError, Ui};
-use crate::data::Dataset;
+use crate::data::{DataError, Dataset};
 use crate::observer::{self, ObserverRequest};
 use crate::pbsid::{self, BpdnScore, Order, PbsidOptions, Reg, Solver};
 use crate::pipeline::{self, reg_name, DataFile, Identified, PbsidSettings};
@@ -249,6 +249,42 @@ pub(super) fn pbsid_json(run: &Identified, out_path: Option<&Path>) -> Value {
     })
 }
 
+/// Whether a fit of the CSV file `bytes` with `opts` reaches faer's large matrix product:
+/// the primal form's Gram update always does (a batch's syrk), the kernel form's reductions
+/// only above [`crate::linalg::TRIDIAG_UNBLOCKED_MAX`] windows. The row count is a bound
+/// (blank lines counted), the form is [`crate::pbsid::primal_is_cheaper`] on the header's
+/// u/y/p columns as `Solver::Auto` decides it; anything unclear answers yes.
+fn needs_large_product(bytes: &[u8], opts: &PbsidOptions) -> bool {
+    let rows = bytes.iter().filter(|&&b| b == b'\n').count();
+    let windows = rows.saturating_sub(opts.past);
+    if windows > crate::linalg::TRIDIAG_UNBLOCKED_MAX {
+        return true;
+    }
+    let header = bytes.split(|&b| b == b'\n').next().unwrap_or_default();
+    let header = String::from_utf8_lossy(header);
+    let names: Vec<&str> = header
+        .trim_start_matches('\u{feff}')
+        .split(',')
+        .map(str::trim)
+        .collect();
+    let count = |prefix: char| {
+        (1..)
+            .take_while(|i| names.contains(&format!("{prefix}{i}").as_str()))
+            .count()
+    };
+    let (r, l, s) = (count('u'), count('y'), count('p'));
+    let Ok(q) = lpvid::PbsidDims::new(r, l, s, opts.past).and_then(|d| d.q()) else {
+        return true;
+    };
+    let r_ft = if opts.feedthrough { r } else { 0 };
+    match opts.solver {
+        _ if opts.kernel_rows.is_some() => false,
+        Solver::Primal => true,
+        Solver::Dual => false,
+        Solver::Auto => crate::pbsid::primal_is_cheaper(q + r_ft, windows, opts.past),
+    }
+}
+
 /// Run `lpvid pbsid`.
 pub(super) fn run(a: &PbsidArgs, ui: Ui, out: &mut dyn Write) -> Result<(), CliError> {
     if a.bpdn_score.is_some() && a.reg != Reg::BpdnSv {
@@ -260,12 +296,6 @@ pub(super) fn run(a: &PbsidArgs, ui: Ui, out: &mut dyn Write) -> Result<(), CliE
     let (Some(train_path), Some(past)) = (&a.train, a.past) else {
         return super::stats::run_pbsid(a, ui, out);
     };
-    // BPDN-SV's matrices are small (B2 p = 5 and 8 never reach faer's large product; the
-    // set-up thread was 1.1-1.7 ms of their 9-10 ms CPU): the product's set-up, if any, runs
-    // at its first use there
-    if a.reg != Reg::BpdnSv {
-        crate::linalg::prefetch_matmul_setup();
-    }
     let mut inputs = vec![("--train", train_path.as_path())];
     if let Some(v) = &a.val {
         inputs.push(("--val", v.as_path()));
@@ -282,38 +312,71 @@ pub(super) fn run(a: &PbsidArgs, ui: Ui, out: &mut dyn Write) -> Result<(), CliE
             },
         },
     };
+    // faer's large product, whose first use reads the cache sizes from sysfs, is set up on
+    // a thread of its own while the files are read ([`crate::linalg::prefetch_matmul_setup`])
+    // when the fit will reach it: never for BPDN-SV (B2 p = 5 and 8 stay below it; the
+    // thread was 1.1-1.7 ms of their 9-10 ms CPU), nor for the kernel form of at most
+    // TRIDIAG_UNBLOCKED_MAX windows; the primal form's Gram update always does
+    let prefetch = |bytes: Option<&[u8]>| {
+        if a.reg == Reg::BpdnSv {
+            return;
+        }
+        let needed = match bytes {
+            None => true,
+            Some(b) => needs_large_product(b, &settings.fit),
+        };
+        if needed {
+            crate::linalg::prefetch_matmul_setup();
+        }
+    };
     let spin = ui.spinner(&format!("reading {}", train_path.display()));
-    let val = match &a.val {
-        Some(p) => {
-            spin.set_message(format!("reading {}", p.display()));
-            Some(Dataset::read_csv(p)?)
-        }
-        None => None,
-    };
-    // a large training file with options that need only the statistics is streamed in
-    // chunks (constant memory); anything else, and any trouble, reads it whole
-    let streamed = if crate::stream::should_stream(train_path, &settings) {
-        spin.set_message(format!(
-            "fitting LPV-PBSID_opt (p = {past}) streaming {}",
-            train_path.display()
-        ));
-        crate::stream::identify_streaming(train_path, val.as_ref(), &settings)
-    } else {
-        None
-    };
-    let run = match streamed {
-        Some(run) => Ok(run),
-        None => {
-            spin.set_message(format!("reading {}", train_path.display()));
-            let train = DataFile::read(train_path)?;
+    let run = std::thread::scope(|sc| {
+        // a large training file with options that need only the statistics is streamed in
+        // chunks (constant memory); anything else, and any trouble, reads it whole
+        if crate::stream::should_stream(train_path, &settings) {
+            prefetch(None);
+            let val = a.val.as_ref().map(|p| Dataset::read_csv(p)).transpose()?;
             spin.set_message(format!(
-                "fitting LPV-PBSID_opt (p = {}, {} samples)",
-                past,
-                train.data.len()
+                "fitting LPV-PBSID_opt (p = {past}) streaming {}",
+                train_path.display()
             ));
-            pipeline::identify(&train, val.as_ref(), &settings)
+            if let Some(run) =
+                crate::stream::identify_streaming(train_path, val.as_ref(), &settings)
+            {
+                return Ok(run);
+            }
+            let train = DataFile::read(train_path)?;
+            return Ok(pipeline::identify(&train, val.as_ref(), &settings)?);
         }
-    };
+        let bytes = crate::data::read_input(train_path);
+        if let Ok(b) = &bytes {
+            prefetch(Some(b));
+        }
+        // the validation file is parsed on a second thread while the training file is
+        // parsed when a core is to spare (a thread waiting for a busy core would stall the
+        // join), else first; its errors come first either way
+        type ValJob<'s> = std::thread::ScopedJoinHandle<'s, Result<Dataset, DataError>>;
+        let (val_job, val_first): (Option<ValJob<'_>>, _) = match &a.val {
+            Some(p) if crate::linalg::spare_core() => {
+                (Some(sc.spawn(move || Dataset::read_csv(p))), None)
+            }
+            Some(p) => (None, Some(Dataset::read_csv(p))),
+            None => (None, None),
+        };
+        let train = bytes.and_then(|b| DataFile::from_read_input(train_path, b));
+        let val = match (val_job, val_first) {
+            (Some(j), _) => Some(j.join().unwrap_or_else(|e| std::panic::resume_unwind(e))?),
+            (None, Some(v)) => Some(v?),
+            (None, None) => None,
+        };
+        let train = train?;
+        spin.set_message(format!(
+            "fitting LPV-PBSID_opt (p = {}, {} samples)",
+            past,
+            train.data.len()
+        ));
+        Ok::<_, CliError>(pipeline::identify(&train, val.as_ref(), &settings)?)
+    });
     spin.finish_and_clear();
     let run = run?;
     let mut outputs = Outputs::default();
