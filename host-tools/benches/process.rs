@@ -38,7 +38,7 @@ use lpvid_host::observer::{
     stability_regions, ObserverRequest, SchedBox, REGION_WIDEN, REPORT_GRID,
 };
 use lpvid_host::pbsid::stream::PassOne;
-use lpvid_host::pbsid::{fit, state_candidates, PbsidOptions, Solver};
+use lpvid_host::pbsid::{fit, state_candidates, PbsidFit, PbsidOptions, Solver};
 use lpvid_host::pipeline::{identify, DataFile, PbsidSettings};
 use lpvid_host::simulate::{score, Mode};
 use lpvid_host::systems;
@@ -94,13 +94,20 @@ fn stages(c: &mut Criterion) {
     group.finish();
 }
 
-fn stability(c: &mut Criterion) {
+/// The B1 p = 3 fit, its scheduling box and the mean operating point (the stability benches'
+/// common set-up).
+fn b1_stability_setup() -> (PbsidFit, SchedBox, Vec<f64>) {
     let train = DataFile::from_bytes("b1-train.csv", B1).unwrap();
     let (_, sig) = lpvid_host::pipeline::training_signals(&train.data, 3).unwrap();
     let f = fit(&sig, &PbsidOptions::new(3)).unwrap();
     let names: Vec<String> = (1..=3).map(|j| format!("p{j}")).collect();
     let sbox = SchedBox::from_signals(&names, &sig);
     let reference: Vec<f64> = (0..3).map(|j| sig.p.column(j).mean()).collect();
+    (f, sbox, reference)
+}
+
+fn stability(c: &mut Criterion) {
+    let (f, sbox, reference) = b1_stability_setup();
     let mut group = c.benchmark_group("stability_B1_p3");
     group.sample_size(10);
     group.bench_function("box_max_dense_nalgebra_schur(before)", |b| {
@@ -315,12 +322,7 @@ fn order_check_orders(c: &mut Criterion) {
 }
 
 fn stability_report(c: &mut Criterion) {
-    let train = DataFile::from_bytes("b1-train.csv", B1).unwrap();
-    let (_, sig) = lpvid_host::pipeline::training_signals(&train.data, 3).unwrap();
-    let f = fit(&sig, &PbsidOptions::new(3)).unwrap();
-    let names: Vec<String> = (1..=3).map(|j| format!("p{j}")).collect();
-    let sbox = SchedBox::from_signals(&names, &sig);
-    let reference: Vec<f64> = (0..3).map(|j| sig.p.column(j).mean()).collect();
+    let (f, sbox, reference) = b1_stability_setup();
     let mut group = c.benchmark_group("stability_report_B1_p3");
     group.sample_size(20);
     group.bench_function("one_after_the_other(before)", |b| {
