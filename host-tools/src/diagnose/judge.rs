@@ -7,7 +7,7 @@
 //! null of its own ([`effects::beats_user`]), that structure with a larger past window
 //! ([`effects::larger_past`]; not for order-too-low, which is that structure), that structure
 //! refined by output error (the scheduling effects, [`effects::needs_refined_null`];
-//! coloured-noise and order-too-low by [`states::states_check`]) and the memory rule
+//! coloured-noise, order-too-low and input-delay by [`states::states_check`]) and the memory rule
 //! ([`memory::forgets_as_null`]). A rule is tested only on a variant that passed the ones
 //! before it. An effect is a finding when one of its variants passes every rule: a best
 //! variant that does not replicate, or replicates and fails a later rule, gives way to the
@@ -338,7 +338,7 @@ impl Bench<'_> {
         if !self.beaten(j.vs_refined, short) {
             return;
         }
-        // coloured-noise and order-too-low against that structure refined
+        // coloured-noise, order-too-low and input-delay against that structure refined
         // (states::states_check: a white refined residual; the order refined like with like)
         if states::needs_states_check(s) {
             j.states = refs.refined(self).and_then(|r| {
