@@ -25,6 +25,9 @@ pub struct FamilyRun {
     pub seed: u64,
     /// Effect named first (above the noise threshold), or "none".
     pub named: String,
+    /// What the finding named first adds (its `detail`: the column, delay, shape; empty when
+    /// nothing was named).
+    pub detail: String,
     /// Held-out error (free-run MSE; one-step for a noise model) before / after --fix
     /// (1 when nothing was applied).
     pub ratio: f64,
@@ -371,6 +374,7 @@ pub fn run_one_shaped(
         planted: effect.to_string(),
         seed,
         named: format!("error: {why}"),
+        detail: String::new(),
         ratio: 1.0,
         description: case.description.clone(),
         oracle: None,
@@ -433,11 +437,9 @@ pub fn run_one_shaped(
         }
         print!("{v}");
     }
-    let named = r
-        .findings
-        .first()
-        .filter(|f| f.significant)
-        .map_or("none".to_string(), |f| f.effect.to_string());
+    let top = r.findings.first().filter(|f| f.significant);
+    let named = top.map_or("none".to_string(), |f| f.effect.to_string());
+    let detail = top.map_or(String::new(), |f| f.detail.clone());
     let ratio = match r.applied.first() {
         Some(a) => {
             let mode = if a.residual == "one-step" {
@@ -454,6 +456,7 @@ pub fn run_one_shaped(
         planted: effect.to_string(),
         seed,
         named,
+        detail,
         ratio,
         description: case.description,
         oracle,
