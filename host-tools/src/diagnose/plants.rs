@@ -1,12 +1,13 @@
 //! Random plant families for measuring `lpvid diagnose` (DESIGN.md section 6): for each effect
 //! of the catalogue (and `output-nonlinearity`, and clean plants) a generator of random
-//! single-input single-output plants with that one effect planted: random order 1-4 with
-//! random stable poles (real or complex pairs, a random similarity transform), with or without
-//! an affine scheduling dependence, random effect strength, white output noise of 1-10 % of
-//! the noise-free output's standard deviation, and one of three input spectra (white,
-//! low-pass, random binary; never binary for input-nonlinearity, see `draw`). The records carry `t` (a continuous clock, so the phase of a
-//! periodic disturbance carries from training to validation), `u1`, `y1`, `p1` (scheduled
-//! plants) and `w` (a logged signal, for `unused-signal`). The `lpvid pbsid` settings of each
+//! single-input single-output plants ([`family_case`]; MIMO shapes by [`family_case_shaped`])
+//! with that one effect planted: random order 1-4 with random stable poles (real or complex
+//! pairs, a random similarity transform), with or without an affine scheduling dependence,
+//! random effect strength, white output noise of 1-10 % of the noise-free output's standard
+//! deviation, and one of three input spectra (white, low-pass, random binary; never binary for
+//! input-nonlinearity, see `draw`). The records carry `t` (a continuous clock, so the phase of
+//! a periodic disturbance carries from training to validation), `u1` (`u1..ur`), `y1`
+//! (`y1..yl`), `p1` (scheduled plants) and `w` (a logged signal, for `unused-signal`). The `lpvid pbsid` settings of each
 //! case are what a user who does not know the effect would choose (for `order-too-low` and
 //! `coloured-noise`: a fixed order that is too small, for `feedthrough`: `--no-feedthrough`).
 //!
