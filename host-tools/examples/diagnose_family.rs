@@ -2,12 +2,14 @@
 //! matrix (how often each effect was named first) and the error ratio after `--fix`.
 //! `cargo run --release -p lpvid-host --example diagnose_family -- [seeds per effect] [N]
 //! [first seed] [held-out samples] [effects, comma-separated]` (defaults 10, 2000, 1000, N,
-//! all). The figures are in docs/bench-diagnose.md.
+//! all). `LPVID_FAMILY_SHAPE=INPUTSxOUTPUTS` (e.g. `2x2`, `2x1`: two inputs, one output; default
+//! `1x1`) draws multi-input multi-output plants instead (`plants::family_case_shaped`); the
+//! printed lines and tables are the same. The figures are in docs/bench-diagnose.md.
 
 #[path = "../tests/diagnose_support/family.rs"]
 mod family;
 
-use lpvid_host::diagnose::plants::FAMILY_EFFECTS;
+use lpvid_host::diagnose::plants::{Shape, FAMILY_EFFECTS};
 
 fn main() {
     let args: Vec<String> = std::env::args().collect();
@@ -23,10 +25,17 @@ fn main() {
             .collect(),
         None => FAMILY_EFFECTS.to_vec(),
     };
+    let shape = match std::env::var("LPVID_FAMILY_SHAPE") {
+        Ok(text) => Shape::parse(&text).unwrap_or_else(|| {
+            eprintln!("LPVID_FAMILY_SHAPE={text:?}: expected INPUTSxOUTPUTS, e.g. 2x2");
+            std::process::exit(2)
+        }),
+        Err(_) => Shape::SISO,
+    };
     let threads = std::thread::available_parallelism().map_or(1, |v| v.get());
     let seeds: Vec<u64> = (first..first + seeds).collect();
     let t0 = std::time::Instant::now();
-    let runs = family::run_family_with(&effects, &seeds, n, threads, val_len);
+    let runs = family::run_family_shaped(&effects, &seeds, n, threads, val_len, shape);
     for r in &runs {
         println!(
             "{:<24} seed {:>5}: named {:<24} ratio {:>8}  ({})",

@@ -1,12 +1,13 @@
 //! Random plant families for measuring `lpvid diagnose` (DESIGN.md section 6): for each effect
 //! of the catalogue (and `output-nonlinearity`, and clean plants) a generator of random
-//! single-input single-output plants with that one effect planted: random order 1-4 with
-//! random stable poles (real or complex pairs, a random similarity transform), with or without
-//! an affine scheduling dependence, random effect strength, white output noise of 1-10 % of
-//! the noise-free output's standard deviation, and one of three input spectra (white,
-//! low-pass, random binary; never binary for input-nonlinearity, see `draw`). The records carry `t` (a continuous clock, so the phase of a
-//! periodic disturbance carries from training to validation), `u1`, `y1`, `p1` (scheduled
-//! plants) and `w` (a logged signal, for `unused-signal`). The `lpvid pbsid` settings of each
+//! single-input single-output plants ([`family_case`]; MIMO shapes by [`family_case_shaped`])
+//! with that one effect planted: random order 1-4 with random stable poles (real or complex
+//! pairs, a random similarity transform), with or without an affine scheduling dependence,
+//! random effect strength, white output noise of 1-10 % of the noise-free output's standard
+//! deviation, and one of three input spectra (white, low-pass, random binary; never binary for
+//! input-nonlinearity, see `draw`). The records carry `t` (a continuous clock, so the phase of
+//! a periodic disturbance carries from training to validation), `u1` (`u1..ur`), `y1`
+//! (`y1..yl`), `p1` (scheduled plants) and `w` (a logged signal, for `unused-signal`). The `lpvid pbsid` settings of each
 //! case are what a user who does not know the effect would choose (for `order-too-low` and
 //! `coloured-noise`: a fixed order that is too small, for `feedthrough`: `--no-feedthrough`).
 //!
@@ -99,6 +100,46 @@ pub struct Planted {
     pub output_nl: Option<(u8, f64)>,
     /// The noise-free scheduling signal p1 over the training record (scheduled plants).
     pub p1_train: Option<Vec<f64>>,
+    /// The plant's shape (inputs u1.., outputs y1..).
+    pub shape: Shape,
+    /// The input channel the effect acts on (0-based: `u{input + 1}`; input-delay,
+    /// input-nonlinearity, feedthrough, output-nonlinearity's feedback direction). 0 for SISO.
+    pub input: usize,
+    /// The output channel the effect acts on (0-based: `y{output + 1}`; output-offset,
+    /// feedthrough, periodic-disturbance, coloured-noise, output-nonlinearity). 0 for SISO.
+    pub output: usize,
+}
+
+/// Inputs and outputs of a family plant. `1x1` (the default) is the SISO family whose draws
+/// are those of [`family_case`]; any other shape draws its own plants from the same seed.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Shape {
+    /// Number of inputs u1..
+    pub inputs: usize,
+    /// Number of outputs y1..
+    pub outputs: usize,
+}
+
+impl Default for Shape {
+    fn default() -> Self {
+        Shape::SISO
+    }
+}
+
+impl Shape {
+    /// One input, one output.
+    pub const SISO: Shape = Shape {
+        inputs: 1,
+        outputs: 1,
+    };
+
+    /// Parse `INPUTSxOUTPUTS` (e.g. `2x2`, `2x1`: two inputs, one output); 1-4 each.
+    pub fn parse(text: &str) -> Option<Shape> {
+        let (a, b) = text.trim().split_once(['x', 'X'])?;
+        let (inputs, outputs) = (a.trim().parse().ok()?, b.trim().parse().ok()?);
+        ((1..=4).contains(&inputs) && (1..=4).contains(&outputs))
+            .then_some(Shape { inputs, outputs })
+    }
 }
 
 /// Why a family case cannot be drawn.
@@ -186,20 +227,75 @@ fn past_window(slowest: f64, order: usize, scheduled: bool, order_too_low: bool)
 
 /// Draw the case of `effect` with `seed`: training and validation records of `n` samples each.
 pub fn family_case(effect: &str, seed: u64, n: usize) -> Result<FamilyCase, FamilyError> {
+    family_case_shaped(effect, seed, n, Shape::SISO)
+}
+
+/// [`family_case`] for a plant of `shape` (inputs u1.., outputs y1..). The SISO shape gives
+/// exactly [`family_case`]'s records (the extra draws of a MIMO plant are made only for it).
+/// A MIMO plant has B, C (and D) of full size; the planted effect acts on one input and / or
+/// one output chosen at random ([`Planted::input`], [`Planted::output`]: an offset, a
+/// sinusoid or coloured noise on one output, a delay or a static nonlinearity on one input,
+/// one entry of D, the own-output feedback of one output along one input's direction), the
+/// scheduling effects, `unused-signal` and the added mode of `order-too-low` act on all
+/// channels as in SISO; white noise of the same relative level on every output.
+pub fn family_case_shaped(
+    effect: &str,
+    seed: u64,
+    n: usize,
+    shape: Shape,
+) -> Result<FamilyCase, FamilyError> {
     if !FAMILY_EFFECTS.contains(&effect) {
         return Err(FamilyError::Unknown(effect.to_string()));
     }
     let mut rng = StdRng::seed_from_u64(seed.wrapping_mul(0x9E37_79B9_7F4A_7C15) ^ 0x5eed);
     for _ in 0..20 {
-        if let Some(c) = draw(effect, seed, n, &mut rng) {
+        if let Some(c) = draw(effect, seed, n, shape, &mut rng) {
             return Ok(c);
         }
     }
     Err(FamilyError::Unstable(effect.to_string(), seed))
 }
 
-fn draw(effect: &str, seed: u64, n: usize, rng: &mut StdRng) -> Option<FamilyCase> {
+/// One input signal of `kind` (0 white, 1 low-pass, 2 random binary), unit spread.
+fn input_signal(rng: &mut StdRng, kind: u8, total: usize) -> Vec<f64> {
+    let z = gauss(rng, total);
+    match kind {
+        0 => z,
+        1 => {
+            let pole = rng.gen_range(0.5..0.8);
+            let mut lp = 0.0;
+            let f: Vec<f64> = z
+                .iter()
+                .map(|v| {
+                    lp = pole * lp + v;
+                    lp
+                })
+                .collect();
+            let s = std_of(&f).max(1e-12);
+            f.iter().map(|v| v / s).collect()
+        }
+        _ => {
+            let mut v = 1.0;
+            let mut hold = 0;
+            (0..total)
+                .map(|_| {
+                    if hold == 0 {
+                        v = if rng.gen_bool(0.5) { 1.0 } else { -1.0 };
+                        hold = rng.gen_range(1..=4);
+                    }
+                    hold -= 1;
+                    v
+                })
+                .collect()
+        }
+    }
+}
+
+fn draw(effect: &str, seed: u64, n: usize, shape: Shape, rng: &mut StdRng) -> Option<FamilyCase> {
     let total = 2 * n;
+    let (nu, ny) = (shape.inputs.max(1), shape.outputs.max(1));
+    // a MIMO plant makes its extra draws only where a SISO plant makes none (same records)
+    let mimo = (nu, ny) != (1, 1);
     let order = rng.gen_range(1..=4usize);
     let needs_p = matches!(
         effect,
@@ -210,8 +306,8 @@ fn draw(effect: &str, seed: u64, n: usize, rng: &mut StdRng) -> Option<FamilyCas
     // length 2^p) stays small enough for PBSID
     let rmax = if scheduled { 0.8 } else { 0.92 };
     let (a0, poles) = random_a(rng, order, rmax);
-    let b0 = randn(rng, order, 1);
-    let c0 = randn(rng, 1, order);
+    let b0 = randn(rng, order, nu);
+    let c0 = randn(rng, ny, order);
     let mut nx = order;
     let mut a = vec![a0];
     let mut b = vec![b0.clone()];
@@ -222,7 +318,7 @@ fn draw(effect: &str, seed: u64, n: usize, rng: &mut StdRng) -> Option<FamilyCas
     // scheduling: A(p) = A0 + p A1, B(p) = B0 + p B1, stable over p in [-1, 1]
     if scheduled {
         let mut a1 = randn(rng, order, order) * 0.25;
-        let b1 = randn(rng, order, 1) * 0.5;
+        let b1 = randn(rng, order, nu) * 0.5;
         for _ in 0..10 {
             let ok = (0..=10).all(|i| {
                 let p = -1.0 + 0.2 * i as f64;
@@ -247,6 +343,19 @@ fn draw(effect: &str, seed: u64, n: usize, rng: &mut StdRng) -> Option<FamilyCas
         k => k,
     };
     let noise = rng.gen_range(0.01..0.10);
+    // the channels the effect acts on (MIMO only)
+    let (ei, eo) = if mimo {
+        (rng.gen_range(0..nu), rng.gen_range(0..ny))
+    } else {
+        (0, 0)
+    };
+    if mimo {
+        words.push(format!(
+            "{nu} inputs, {ny} outputs, effect on u{} / y{}",
+            ei + 1,
+            eo + 1
+        ));
+    }
     // the user's model: the plant's order and a past window over which the slowest pole
     // decays to 5 % (a careful user; the family measures the detectors, not the order choice).
     // For a scheduled plant the slowest pole is that of the frozen dynamics A(p) = A0 + p A1
@@ -323,7 +432,8 @@ fn draw(effect: &str, seed: u64, n: usize, rng: &mut StdRng) -> Option<FamilyCas
             ));
         }
         "order-too-low" => {
-            // two more states: a resonant mode of gain comparable with the rest
+            // two more states: a resonant mode of gain comparable with the rest (MIMO: driven
+            // by every input, seen on every output)
             let r = rng.gen_range(0.6..0.9);
             let th: f64 = rng.gen_range(0.3..2.5);
             let mut aa = DMatrix::zeros(order + 2, order + 2);
@@ -343,11 +453,16 @@ fn draw(effect: &str, seed: u64, n: usize, rng: &mut StdRng) -> Option<FamilyCas
             }
             a = na;
             strength = rng.gen_range(0.7..1.5);
-            let mut bb: Vec<DMatrix<f64>> = b.iter().map(|m| grow(m, order + 2, 1)).collect();
-            bb[0][(order, 0)] = strength;
+            let mut bb: Vec<DMatrix<f64>> = b.iter().map(|m| grow(m, order + 2, nu)).collect();
+            for i in 0..nu {
+                bb[0][(order, i)] = strength;
+            }
             b = bb;
-            let mut cc = grow(&c[0], 1, order + 2);
-            cc[(0, order)] = strength * c0.norm() / (order as f64).sqrt();
+            let mut cc = grow(&c[0], ny, order + 2);
+            for j in 0..ny {
+                cc[(j, order)] =
+                    strength * c0.rows(j, 1).into_owned().norm() / (order as f64).sqrt();
+            }
             c = vec![cc];
             nx = order + 2;
             args.extend(["--order".to_string(), order.to_string()]);
@@ -367,7 +482,8 @@ fn draw(effect: &str, seed: u64, n: usize, rng: &mut StdRng) -> Option<FamilyCas
             // largest noise level of the family (measured: 15 of 16 plants named, seeds
             // 1000-1015, docs/bench-diagnose.md)
             strength = rng.gen_range(0.1..0.4);
-            let dir = b0.clone() / b0.norm().max(1e-9);
+            let col = b0.columns(ei, 1).into_owned();
+            let dir = col.clone() / col.norm().max(1e-9);
             let kind = rng.gen_range(0..3u8);
             words.push(["cubic spring", "sin", "signed sqrt"][kind as usize].to_string());
             out_nl = Some((kind, strength, dir));
@@ -376,37 +492,10 @@ fn draw(effect: &str, seed: u64, n: usize, rng: &mut StdRng) -> Option<FamilyCas
     }
     args.splice(0..0, ["--past".to_string(), past.to_string()]);
     // signals
-    let z = gauss(rng, total);
-    let u: Vec<f64> = match input_kind {
-        0 => z,
-        1 => {
-            let pole = rng.gen_range(0.5..0.8);
-            let mut lp = 0.0;
-            let f: Vec<f64> = z
-                .iter()
-                .map(|v| {
-                    lp = pole * lp + v;
-                    lp
-                })
-                .collect();
-            let s = std_of(&f).max(1e-12);
-            f.iter().map(|v| v / s).collect()
-        }
-        _ => {
-            let mut v = 1.0;
-            let mut hold = 0;
-            (0..total)
-                .map(|_| {
-                    if hold == 0 {
-                        v = if rng.gen_bool(0.5) { 1.0 } else { -1.0 };
-                        hold = rng.gen_range(1..=4);
-                    }
-                    hold -= 1;
-                    v
-                })
-                .collect()
-        }
-    };
+    let mut u: Vec<Vec<f64>> = vec![input_signal(rng, input_kind, total)];
+    for _ in 1..nu {
+        u.push(input_signal(rng, input_kind, total));
+    }
     words.push(
         ["white input", "low-pass input", "random binary input"][input_kind as usize].to_string(),
     );
@@ -446,15 +535,21 @@ fn draw(effect: &str, seed: u64, n: usize, rng: &mut StdRng) -> Option<FamilyCas
             })
             .collect()
     };
-    let su = std_of(&u).max(1e-12);
-    let input = |k: usize| -> f64 {
-        let uk = if k >= delay { u[k - delay] } else { 0.0 };
-        match input_nl {
-            None => uk,
-            Some((0, s)) => uk + s * uk.abs() * uk / su,
-            Some((1, s)) => uk + s * uk * uk / su,
-            Some((_, s)) => su * (uk / su * (1.0 + 2.0 * s)).tanh() / (1.0 + 2.0 * s) * 2.0,
-        }
+    let su: Vec<f64> = u.iter().map(|ui| std_of(ui).max(1e-12)).collect();
+    // the input vector at sample k: the planted delay and nonlinearity act on input `ei`
+    let input = |k: usize| -> DVector<f64> {
+        DVector::from_fn(nu, |i, _| {
+            let di = if i == ei { delay } else { 0 };
+            let uk = if k >= di { u[i][k - di] } else { 0.0 };
+            let su = su[i];
+            match input_nl {
+                _ if i != ei => uk,
+                None => uk,
+                Some((0, s)) => uk + s * uk.abs() * uk / su,
+                Some((1, s)) => uk + s * uk * uk / su,
+                Some((_, s)) => su * (uk / su * (1.0 + 2.0 * s)).tanh() / (1.0 + 2.0 * s) * 2.0,
+            }
+        })
     };
     let poly = |m: &[DMatrix<f64>], pk: f64| {
         let mut o = m[0].clone();
@@ -474,11 +569,16 @@ fn draw(effect: &str, seed: u64, n: usize, rng: &mut StdRng) -> Option<FamilyCas
             _ => -z.abs().sqrt() * z.signum() * s,
         }
     };
-    // one run: `fb` = (gain of the own-output feedback along `dir`, and Some(slope) to replace
-    // g(y) by slope * y: the plant with its feedback linearised); noise-free when e = 0
-    let run = |d: f64, sy: f64, e: &[f64], fb: (f64, Option<f64>)| -> Option<Vec<f64>> {
+    // one run (outputs y[j][k]): `fb` = (gain of the own-output feedback of output `eo` along
+    // `dir`, and Some(slope) to replace g(y) by slope * y: the plant with its feedback
+    // linearised); noise-free when e = 0
+    let run = |d: &DMatrix<f64>,
+               sy: f64,
+               e: &[Vec<f64>],
+               fb: (f64, Option<f64>)|
+     -> Option<Vec<Vec<f64>>> {
         let mut x = DVector::zeros(nx);
-        let mut y = vec![0.0; total];
+        let mut y = vec![vec![0.0; total]; ny];
         for k in 0..total {
             let v = input(k);
             let pk = p[k];
@@ -486,9 +586,11 @@ fn draw(effect: &str, seed: u64, n: usize, rng: &mut StdRng) -> Option<FamilyCas
             if let Some(c1) = &c1 {
                 ck += c1 * pk;
             }
-            let yk = (ck * &x)[0] + d * v;
-            y[k] = yk + e[k];
-            let mut xn = poly(&a, pk) * &x + poly(&b, pk) * v;
+            let yk = ck * &x + d * &v;
+            for j in 0..ny {
+                y[j][k] = yk[j] + e[j][k];
+            }
+            let mut xn = poly(&a, pk) * &x + poly(&b, pk) * &v;
             if let Some(bw) = &bw {
                 xn += bw * w[k];
             }
@@ -497,8 +599,8 @@ fn draw(effect: &str, seed: u64, n: usize, rng: &mut StdRng) -> Option<FamilyCas
                 // x(k+1) = A x(k) + B u(k) + dir g(y(k)) (the sampled form of
                 // x' = A x + B u + dir g(C x), the structure of a Lur'e model)
                 let g = match fb.1 {
-                    Some(slope) => slope * yk,
-                    None => shape(*kind, yk, sy.max(1e-12)),
+                    Some(slope) => slope * yk[eo],
+                    None => shape(*kind, yk[eo], sy.max(1e-12)),
                 };
                 xn += dir * (fb.0 * g);
             }
@@ -509,24 +611,26 @@ fn draw(effect: &str, seed: u64, n: usize, rng: &mut StdRng) -> Option<FamilyCas
         }
         Some(y)
     };
-    let zero = vec![0.0; total];
+    let zero = vec![vec![0.0; total]; ny];
     // the output scale of the plant without the own-output feedback
-    let y_lin = run(0.0, 1.0, &zero, (0.0, None))?;
-    let sy0 = std_of(&y_lin).max(1e-9);
-    let d = d0 * sy0 / su;
+    let mut dm = DMatrix::zeros(ny, nu);
+    let y_lin = run(&dm, 1.0, &zero, (0.0, None))?;
+    let sy0: Vec<f64> = y_lin.iter().map(|yj| std_of(yj).max(1e-9)).collect();
+    dm[(eo, ei)] = d0 * sy0[eo] / su[ei];
+    let d = &dm;
     // output-nonlinearity: the feedback gain that makes the planted strength the nonlinear
     // share of the output, eta = std(y - y_lin) / std(y), y_lin the same plant with g(y)
     // replaced by its least-squares line on the same run (what a linear model can absorb)
     let mut gain = 0.0;
     if let Some((kind, target, _)) = &out_nl {
         let eta = |gn: f64| -> Option<f64> {
-            let y = run(d, sy0, &zero, (gn, None))?;
-            let (gy, yy) = y.iter().fold((0.0, 0.0), |(a, b), v| {
-                (a + shape(*kind, *v, sy0) * v, b + v * v)
+            let y = run(d, sy0[eo], &zero, (gn, None))?;
+            let (gy, yy) = y[eo].iter().fold((0.0, 0.0), |(a, b), v| {
+                (a + shape(*kind, *v, sy0[eo]) * v, b + v * v)
             });
-            let yl = run(d, sy0, &zero, (gn, Some(gy / yy.max(1e-300))))?;
-            let diff: Vec<f64> = y.iter().zip(&yl).map(|(a, b)| a - b).collect();
-            Some(std_of(&diff) / std_of(&y).max(1e-12))
+            let yl = run(d, sy0[eo], &zero, (gn, Some(gy / yy.max(1e-300))))?;
+            let diff: Vec<f64> = y[eo].iter().zip(&yl[eo]).map(|(a, b)| a - b).collect();
+            Some(std_of(&diff) / std_of(&y[eo]).max(1e-12))
         };
         let (mut lo, mut hi) = (0.0, 0.25);
         let mut found = false;
@@ -561,9 +665,9 @@ fn draw(effect: &str, seed: u64, n: usize, rng: &mut StdRng) -> Option<FamilyCas
         // the feedback's linear part must not make the plant (nearly) unstable: a large gain
         // of the sin shape, whose linear part is most of it, pushed outputs to 1e5 x their
         // linear spread (a degenerate record, not an identification problem)
-        let y = run(d, sy0, &zero, (gain, None))?;
-        let (gy, yy) = y.iter().fold((0.0, 0.0), |(a, b), v| {
-            (a + shape(*kind, *v, sy0) * v, b + v * v)
+        let y = run(d, sy0[eo], &zero, (gain, None))?;
+        let (gy, yy) = y[eo].iter().fold((0.0, 0.0), |(a, b), v| {
+            (a + shape(*kind, *v, sy0[eo]) * v, b + v * v)
         });
         let slope = gain * gy / yy.max(1e-300);
         let dir = &out_nl.as_ref()?.2;
@@ -578,33 +682,37 @@ fn draw(effect: &str, seed: u64, n: usize, rng: &mut StdRng) -> Option<FamilyCas
             if let Some(c1) = &c1 {
                 ck += c1 * pk;
             }
-            cl += dir * ck * slope;
+            cl += dir * ck.rows(eo, 1) * slope;
             radius(&cl) < 0.95
         });
-        if !stable || std_of(&y) > 10.0 * sy0 {
+        if !stable || std_of(&y[eo]) > 10.0 * sy0[eo] {
             return None;
         }
     }
-    let y_clean = run(d, sy0, &zero, (gain, None))?;
-    let sy = std_of(&y_clean);
-    if sy.is_nan() || sy <= 1e-9 {
+    let y_clean = run(d, sy0[eo], &zero, (gain, None))?;
+    let sy: Vec<f64> = y_clean.iter().map(|yj| std_of(yj)).collect();
+    if sy.iter().any(|s| s.is_nan() || *s <= 1e-9) {
         return None;
     }
-    let white: Vec<f64> = gauss(rng, total).iter().map(|v| v * noise * sy).collect();
-    let mut y = run(d, sy0, &white, (gain, None))?;
+    let white: Vec<Vec<f64>> = sy
+        .iter()
+        .map(|s| gauss(rng, total).iter().map(|v| v * noise * s).collect())
+        .collect();
+    let mut y = run(d, sy0[eo], &white, (gain, None))?;
     let cz = gauss(rng, total);
     let mut cn = 0.0;
-    for (k, yk) in y.iter_mut().enumerate() {
-        *yk += offset * sy;
+    let sye = sy[eo];
+    for (k, yk) in y[eo].iter_mut().enumerate() {
+        *yk += offset * sye;
         if let Some((amp, om, ph, harm)) = sine {
-            *yk += amp * sy * (om * k as f64 + ph).sin();
+            *yk += amp * sye * (om * k as f64 + ph).sin();
             if harm && 2.0 * om < PI {
-                *yk += 0.5 * amp * sy * (2.0 * om * k as f64 + 2.0 * ph + 1.0).sin();
+                *yk += 0.5 * amp * sye * (2.0 * om * k as f64 + 2.0 * ph + 1.0).sin();
             }
         }
         if let Some((pole, s)) = coloured {
             cn = pole * cn + cz[k];
-            *yk += s * sy * (1.0 - pole * pole).sqrt() * cn;
+            *yk += s * sye * (1.0 - pole * pole).sqrt() * cn;
         }
     }
     if scheduled {
@@ -634,12 +742,16 @@ fn draw(effect: &str, seed: u64, n: usize, rng: &mut StdRng) -> Option<FamilyCas
         100.0 * noise
     ));
     let split = |lo: usize, hi: usize, noisy: bool| {
-        let mut names = vec!["t".to_string(), "u1".into(), "y1".into()];
-        let mut cols = vec![
-            (lo..hi).map(|k| k as f64 * TS).collect::<Vec<_>>(),
-            u[lo..hi].to_vec(),
-            y[lo..hi].to_vec(),
-        ];
+        let mut names = vec!["t".to_string()];
+        let mut cols = vec![(lo..hi).map(|k| k as f64 * TS).collect::<Vec<_>>()];
+        for (i, ui) in u.iter().enumerate() {
+            names.push(format!("u{}", i + 1));
+            cols.push(ui[lo..hi].to_vec());
+        }
+        for (j, yj) in y.iter().enumerate() {
+            names.push(format!("y{}", j + 1));
+            cols.push(yj[lo..hi].to_vec());
+        }
         if scheduled {
             names.push("p1".into());
             cols.push(
@@ -682,8 +794,14 @@ fn draw(effect: &str, seed: u64, n: usize, rng: &mut StdRng) -> Option<FamilyCas
             sine: sine.map(|(_, om, _, harm)| (om, harm && 2.0 * om < PI)),
             ts: TS,
             coloured_pole: coloured.map(|(pole, _)| pole),
-            output_nl: out_nl.as_ref().map(|(kind, _, _)| (*kind, sy0)),
+            output_nl: out_nl.as_ref().map(|(kind, _, _)| (*kind, sy0[eo])),
             p1_train: scheduled.then(|| p[..n].to_vec()),
+            shape: Shape {
+                inputs: nu,
+                outputs: ny,
+            },
+            input: ei,
+            output: eo,
         },
     })
 }
@@ -711,6 +829,76 @@ mod tests {
             }
         }
         assert!(family_case("no-such-effect", 0, 10).is_err());
+    }
+
+    #[test]
+    fn every_effect_draws_finite_mimo_records() {
+        for text in ["2x2", "1x2", "2x1"] {
+            let shape = Shape::parse(text).unwrap();
+            let mut channels = std::collections::BTreeSet::new();
+            for e in FAMILY_EFFECTS {
+                for seed in 0..3 {
+                    let c = family_case_shaped(e, seed, 400, shape).unwrap();
+                    let pl = &c.planted;
+                    assert_eq!(pl.shape, shape);
+                    assert!(pl.input < shape.inputs && pl.output < shape.outputs);
+                    channels.insert((pl.input, pl.output));
+                    assert_eq!((c.train.len(), c.val.len()), (400, 400));
+                    for col in c.train.cols.iter().chain(&c.val.cols) {
+                        assert!(col.iter().all(|v| v.is_finite()), "{text} {e} {seed}");
+                    }
+                    for i in 1..=shape.inputs {
+                        let u = c.train.column(&format!("u{i}")).unwrap();
+                        assert!(std_of(u) > 0.1, "{text} {e} {seed} u{i}");
+                    }
+                    for j in 1..=shape.outputs {
+                        let y = c.train.column(&format!("y{j}")).unwrap();
+                        assert!(std_of(y) > 0.0, "{text} {e} {seed} y{j}");
+                    }
+                    assert!(c.train.column(&format!("u{}", shape.inputs + 1)).is_none());
+                    assert!(c.train.column(&format!("y{}", shape.outputs + 1)).is_none());
+                    assert!(c.description.contains(&format!(
+                        "{} inputs, {} outputs, effect on u{} / y{}",
+                        shape.inputs,
+                        shape.outputs,
+                        pl.input + 1,
+                        pl.output + 1
+                    )));
+                }
+            }
+            // the effect's channels are drawn, not always the first
+            assert!(channels.len() > 1, "{text}: {channels:?}");
+        }
+        assert_eq!(Shape::parse("1x1"), Some(Shape::SISO));
+        assert!(Shape::parse("0x2").is_none() && Shape::parse("2").is_none());
+    }
+
+    #[test]
+    fn the_siso_shape_draws_the_siso_family() {
+        // a shape parameter must not move any SISO record: the same seed, the same plant
+        for e in FAMILY_EFFECTS {
+            let a = family_case(e, 7, 200).unwrap();
+            let b = family_case_shaped(e, 7, 200, Shape::SISO).unwrap();
+            assert_eq!(a.train.cols, b.train.cols, "{e}");
+            assert_eq!(a.description, b.description, "{e}");
+            assert!(!a.description.contains("inputs"));
+        }
+        // a planted output offset sits on the drawn output only
+        for seed in 0..6 {
+            let c = family_case_shaped("output-offset", seed, 1000, Shape::parse("1x2").unwrap())
+                .unwrap();
+            let mean = |j: usize| {
+                let y = c.train.column(&format!("y{}", j + 1)).unwrap();
+                (y.iter().sum::<f64>() / y.len() as f64).abs() / std_of(y)
+            };
+            let (hit, other) = (c.planted.output, 1 - c.planted.output);
+            assert!(
+                mean(hit) > mean(other),
+                "{seed}: {} {}",
+                mean(hit),
+                mean(other)
+            );
+        }
     }
 
     #[test]

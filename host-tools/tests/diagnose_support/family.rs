@@ -9,7 +9,7 @@ use std::collections::BTreeMap;
 use std::fmt::Write as _;
 
 use lpvid_host::diagnose::effects::{significant, versus, Eval};
-use lpvid_host::diagnose::plants::{family_case, FamilyCase};
+use lpvid_host::diagnose::plants::{family_case_shaped, FamilyCase, Shape};
 use lpvid_host::diagnose::refit::{fit_spec, Noise, Spec};
 use lpvid_host::diagnose::{diagnose, Options};
 use lpvid_host::model::{Factor, FactorFn, ModelFile};
@@ -25,6 +25,9 @@ pub struct FamilyRun {
     pub seed: u64,
     /// Effect named first (above the noise threshold), or "none".
     pub named: String,
+    /// What the finding named first adds (its `detail`: the column, delay, shape; empty when
+    /// nothing was named).
+    pub detail: String,
     /// Held-out error (free-run MSE; one-step for a noise model) before / after --fix
     /// (1 when nothing was applied).
     pub ratio: f64,
@@ -74,12 +77,20 @@ pub fn identifiable(explained: f64, p_value: f64) -> bool {
 /// searches one (the delay, the frequency, the order, the shape and scale of the feedback).
 /// `input-nonlinearity` of the tanh kind has no exact factor: its leading odd term u^3 and
 /// |u| u. `scheduling-noise`: the same structure, refit on the noise-free p1 (the returned
-/// training record). None for `clean`.
+/// training record). None for `clean`. On a MIMO plant the channel-specific structures name
+/// the planted channel (`u{input + 1}`, `y{output + 1}` of [`Planted`]); `feedthrough`
+/// estimates all of D, `output-offset` adds one constant input channel (it reaches every
+/// output), `coloured-noise` a noise model on every output: the catalogue's own structures,
+/// which are not per channel.
+///
+/// [`Planted`]: lpvid_host::diagnose::plants::Planted
 fn oracle_spec(
     case: &FamilyCase,
     user: &Spec,
 ) -> Option<(String, Spec, lpvid_host::data::Dataset)> {
     let pl = &case.planted;
+    let (un, yn) = (format!("u{}", pl.input + 1), format!("y{}", pl.output + 1));
+    let (un, yn) = (un.as_str(), yn.as_str());
     let mut sp = user.clone();
     let mut train = case.train.clone();
     let plain = |col: &str, pow: f64, delay: usize, func: Option<FactorFn>| Factor {
@@ -106,24 +117,28 @@ fn oracle_spec(
             "scheduling basis p1^2".to_string()
         }
         "input-nonlinearity" => {
-            let u = plain("u1", 1.0, 0, None);
-            let abs_u = vec![plain("u1", 1.0, 0, Some(FactorFn::Abs)), u.clone()];
+            let u = plain(un, 1.0, 0, None);
+            let abs_u = vec![plain(un, 1.0, 0, Some(FactorFn::Abs)), u.clone()];
             match pl.input_nl? {
                 0 => sp.signals.inputs.push(abs_u),
-                1 => sp.signals.inputs.push(vec![plain("u1", 2.0, 0, None)]),
+                1 => sp.signals.inputs.push(vec![plain(un, 2.0, 0, None)]),
                 _ => {
-                    sp.signals.inputs.push(vec![plain("u1", 3.0, 0, None)]);
+                    sp.signals.inputs.push(vec![plain(un, 3.0, 0, None)]);
                     sp.signals.inputs.push(abs_u);
                 }
             }
-            format!(
-                "input channel {}",
-                ["|u1| u1", "u1^2", "u1^3 and |u1| u1 (tanh)"][pl.input_nl? as usize]
-            )
+            let words = ["|u| u", "u^2", "u^3 and |u| u (tanh)"][pl.input_nl? as usize];
+            format!("input channel {}", words.replace('u', un))
         }
         "input-delay" => {
-            sp.signals.inputs[0] = vec![plain("u1", 1.0, pl.delay, None)];
-            format!("u1 delayed {} samples", pl.delay)
+            // the user's channel of the delayed input (the first of a SISO plant)
+            let i = sp
+                .signals
+                .inputs
+                .iter()
+                .position(|ch| ch.len() == 1 && ch[0].col == un)?;
+            sp.signals.inputs[i] = vec![plain(un, 1.0, pl.delay, None)];
+            format!("{un} delayed {} samples", pl.delay)
         }
         "periodic-disturbance" => {
             let (om, harm) = pl.sine?;
@@ -162,26 +177,26 @@ fn oracle_spec(
         }
         "output-nonlinearity" => {
             let (kind, scale) = pl.output_nl?;
-            let y = plain("y1", 1.0, 0, None);
+            let y = plain(yn, 1.0, 0, None);
             let ch = match kind {
-                0 => vec![plain("y1", 3.0, 0, None)],
+                0 => vec![plain(yn, 3.0, 0, None)],
                 1 => vec![Factor {
                     omega: Some(1.0 / scale),
-                    ..plain("y1", 1.0, 0, Some(FactorFn::Sin))
+                    ..plain(yn, 1.0, 0, Some(FactorFn::Sin))
                 }],
-                _ => vec![plain("y1", 1.0, 0, Some(FactorFn::Sign)), {
+                _ => vec![plain(yn, 1.0, 0, Some(FactorFn::Sign)), {
                     let mut f = y;
                     f.pow = 0.5;
                     f
                 }],
             };
             sp.signals.inputs.push(ch);
-            [
-                "feedback y1^3",
-                "feedback sin(y1/scale)",
-                "feedback sign(y1) sqrt|y1|",
-            ][kind as usize]
-                .to_string()
+            let words = [
+                "feedback y^3",
+                "feedback sin(y/scale)",
+                "feedback sign(y) sqrt|y|",
+            ];
+            words[kind as usize].replace('y', yn)
         }
         "scheduling-noise" => {
             let p = pl.p1_train.as_ref()?;
@@ -309,7 +324,17 @@ pub fn diagnose_one(
     seed: u64,
     n: usize,
 ) -> (ModelFile, lpvid_host::diagnose::Outcome) {
-    let case = family_case(effect, seed, n).unwrap();
+    diagnose_one_shaped(effect, seed, n, Shape::SISO)
+}
+
+/// [`diagnose_one`] for a plant of `shape` (inputs x outputs).
+pub fn diagnose_one_shaped(
+    effect: &str,
+    seed: u64,
+    n: usize,
+    shape: Shape,
+) -> (ModelFile, lpvid_host::diagnose::Outcome) {
+    let case = family_case_shaped(effect, seed, n, shape).unwrap();
     let model = user_model(&case).unwrap();
     let opts = Options {
         fix: true,
@@ -328,7 +353,18 @@ pub fn run_one(effect: &str, seed: u64, n: usize) -> FamilyRun {
 /// [`run_one`] with the validation (held-out) record cut to its first `val_len` samples (a
 /// short held-out record, as the cascaded tanks' 205 samples).
 pub fn run_one_with(effect: &str, seed: u64, n: usize, val_len: Option<usize>) -> FamilyRun {
-    let mut case = family_case(effect, seed, n).unwrap();
+    run_one_shaped(effect, seed, n, val_len, Shape::SISO)
+}
+
+/// [`run_one_with`] for a plant of `shape` (inputs x outputs).
+pub fn run_one_shaped(
+    effect: &str,
+    seed: u64,
+    n: usize,
+    val_len: Option<usize>,
+    shape: Shape,
+) -> FamilyRun {
+    let mut case = family_case_shaped(effect, seed, n, shape).unwrap();
     if let Some(v) = val_len {
         for c in case.val.cols.iter_mut() {
             c.truncate(v);
@@ -338,6 +374,7 @@ pub fn run_one_with(effect: &str, seed: u64, n: usize, val_len: Option<usize>) -
         planted: effect.to_string(),
         seed,
         named: format!("error: {why}"),
+        detail: String::new(),
         ratio: 1.0,
         description: case.description.clone(),
         oracle: None,
@@ -400,11 +437,9 @@ pub fn run_one_with(effect: &str, seed: u64, n: usize, val_len: Option<usize>) -
         }
         print!("{v}");
     }
-    let named = r
-        .findings
-        .first()
-        .filter(|f| f.significant)
-        .map_or("none".to_string(), |f| f.effect.to_string());
+    let top = r.findings.first().filter(|f| f.significant);
+    let named = top.map_or("none".to_string(), |f| f.effect.to_string());
+    let detail = top.map_or(String::new(), |f| f.detail.clone());
     let ratio = match r.applied.first() {
         Some(a) => {
             let mode = if a.residual == "one-step" {
@@ -421,6 +456,7 @@ pub fn run_one_with(effect: &str, seed: u64, n: usize, val_len: Option<usize>) -
         planted: effect.to_string(),
         seed,
         named,
+        detail,
         ratio,
         description: case.description,
         oracle,
@@ -440,6 +476,18 @@ pub fn run_family_with(
     threads: usize,
     val_len: Option<usize>,
 ) -> Vec<FamilyRun> {
+    run_family_shaped(effects, seeds, n, threads, val_len, Shape::SISO)
+}
+
+/// [`run_family_with`] on plants of `shape` (inputs x outputs).
+pub fn run_family_shaped(
+    effects: &[&str],
+    seeds: &[u64],
+    n: usize,
+    threads: usize,
+    val_len: Option<usize>,
+    shape: Shape,
+) -> Vec<FamilyRun> {
     let jobs: Vec<(String, u64)> = effects
         .iter()
         .flat_map(|e| seeds.iter().map(move |s| (e.to_string(), *s)))
@@ -451,7 +499,7 @@ pub fn run_family_with(
             s.spawn(|| loop {
                 let i = next.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
                 let Some((e, seed)) = jobs.get(i) else { break };
-                let r = run_one_with(e, *seed, n, val_len);
+                let r = run_one_shaped(e, *seed, n, val_len, shape);
                 out.lock().unwrap().push(r);
             });
         }
