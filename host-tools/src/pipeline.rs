@@ -733,7 +733,34 @@ pub fn pbsid_warnings(
             obs.max_rho
         ));
     }
+    for (j, (&lo, &hi)) in obs.sbox.lo.iter().zip(&obs.sbox.hi).enumerate() {
+        if let Some(gap) = far_from_zero(lo, hi) {
+            w.push(format!(
+                "scheduling signal {} spans [{lo:.4e}, {hi:.4e}], {gap:.1} times its width away \
+                 from 0: the fit's first local model (eq. (14)) is the plant extrapolated to p = 0 \
+                 and its dependence on p is regularised away (B2 with p + 370: VAF 95.3 -> \
+                 56.9 %); subtract a nominal operating point (e.g. its mean) from the column",
+                j + 1
+            ));
+        }
+    }
     w
+}
+
+/// How many of its widths a scheduling range [lo, hi] lies away from p = 0, when that is more
+/// than one: the internal scaling ([`crate::pbsid::Scaling`]) does not centre p, so the
+/// fit's first local model sits at p = 0 (docs/bench-diagnose.md, "A scheduling signal far
+/// from 0": the held-out error of 43 scheduled family plants rose 9x at p + 20).
+pub fn far_from_zero(lo: f64, hi: f64) -> Option<f64> {
+    let width = hi - lo;
+    let gap = if lo > 0.0 {
+        lo
+    } else if hi < 0.0 {
+        -hi
+    } else {
+        0.0
+    };
+    (width > 0.0 && gap > width).then(|| gap / width)
 }
 
 /// Identify an LPV state-space model from extended second-moment statistics alone (a
@@ -877,6 +904,51 @@ mod tests {
             id.train_score.vaf_mean > 99.0,
             "{}",
             id.train_score.vaf_mean
+        );
+        // B1's p1 spans [0, 1]: 0 is in its range, no warning about it
+        assert!(
+            id.warnings.iter().all(|w| !w.contains("away from 0")),
+            "{:?}",
+            id.warnings
+        );
+    }
+
+    #[test]
+    fn a_scheduling_range_far_from_zero_is_named() {
+        assert_eq!(far_from_zero(-1.0, 1.0), None);
+        assert_eq!(far_from_zero(0.0, 1.0), None);
+        assert_eq!(far_from_zero(0.5, 1.5), None);
+        assert_eq!(far_from_zero(340.0, 400.0), Some(340.0 / 60.0));
+        assert_eq!(far_from_zero(-400.0, -340.0), Some(340.0 / 60.0));
+        assert_eq!(far_from_zero(2.0, 2.0), None);
+        // B1 with its scheduling columns moved by 370 (a rotor speed in rpm): the warning
+        let text = std::str::from_utf8(include_bytes!("../../fixtures/b1-train.csv")).unwrap();
+        let mut lines = text.lines();
+        let head: Vec<&str> = lines.next().unwrap().split(',').collect();
+        let mut out = head.join(",") + "\n";
+        for line in lines {
+            let row: Vec<String> = line
+                .split(',')
+                .zip(&head)
+                .map(|(v, h)| match h.starts_with('p') {
+                    true => (v.parse::<f64>().unwrap() + 370.0).to_string(),
+                    false => v.to_string(),
+                })
+                .collect();
+            out += &(row.join(",") + "\n");
+        }
+        let train = DataFile::from_bytes("far.csv", out.as_bytes()).unwrap();
+        let id = identify(&train, None, &PbsidSettings::new(3)).unwrap();
+        let far: Vec<_> = id
+            .warnings
+            .iter()
+            .filter(|w| w.contains("away from 0"))
+            .collect();
+        assert_eq!(far.len(), 3, "{:?}", id.warnings);
+        assert!(
+            far[0].starts_with("scheduling signal 1 spans [3.7"),
+            "{}",
+            far[0]
         );
     }
 }
