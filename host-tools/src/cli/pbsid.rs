@@ -148,6 +148,17 @@ pub(super) fn print_pbsid(
         f.windows
     )?;
     writeln!(out, "  solver: {}", f.solver_reason)?;
+    let centred: Vec<String> = (f.scaling.p_center.iter().enumerate())
+        .filter(|(_, c)| **c != 0.0)
+        .map(|(j, c)| format!("signal {} at {c:.6e}", j + 1))
+        .collect();
+    if !centred.is_empty() {
+        writeln!(
+            out,
+            "  scheduling centred at its mean, 0 lying outside its range (the first local model of eq. (14)): {}",
+            centred.join(", ")
+        )?;
+    }
     match f.lambda {
         Some(lam) => writeln!(
             out,

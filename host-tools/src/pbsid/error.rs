@@ -104,6 +104,11 @@ pub enum FitError {
         /// Past window p.
         p: usize,
     },
+    /// The statistic vector's layout has an entry that is not a product of distinct
+    /// channel values, so the centring of the scheduling signals cannot be mapped onto it
+    /// (an internal error: the layout and `pbsid::scaling` disagree).
+    #[error("internal: entry {0} of the statistic vector is not a product of distinct channel values; the scheduling centring cannot map it")]
+    CentringLayout(usize),
     /// Statistics accumulated with another past window than the one asked for.
     #[error("the statistics were accumulated with past window {statistics}, not {asked}")]
     StatisticsPastWindow {

@@ -53,14 +53,14 @@ pub use order::{
     far_worse, free_run_order, select_order, FAR_WORSE_GAP, FAR_WORSE_RATIO, FLOOR_FACTOR,
 };
 pub use realize::{gamma_k, realize_from_states, realize_from_stats};
-pub use scaling::{unscale, Scaling};
+pub use scaling::{unscale, Scaling, P_ZERO_INSIDE};
 pub use settings::{
     BpdnScore, Order, PbsidFit, PbsidOptions, Reg, SettingError, Solver, DEFAULT_SCHED_WEIGHT,
 };
 
 use order::choose_order;
 use primal::{dense, primal_regression_svd};
-use scaling::{scaled_rows, stat_scale_vector, ChannelSums};
+use scaling::{scale_stat_gram, scaled_rows, ChannelSums};
 
 /// Check the options against the data size; returns the future window.
 fn check_options(dims: &PbsidDims, windows: usize, opts: &PbsidOptions) -> Result<usize, FitError> {
@@ -350,13 +350,8 @@ pub fn fit_from_stats<S: AsRef<[f64]> + AsMut<[f64]>>(
     }
     let f = check_options(dims, windows, opts)?;
     let scaling = sums.scaling(opts.sched_weight)?;
-    let dvec = stat_scale_vector(dims, layout, &scaling)?;
     let mut g = dense(gram, len);
-    for i in 0..len {
-        for j in 0..len {
-            g[(i, j)] *= dvec[i] * dvec[j];
-        }
-    }
+    scale_stat_gram(dims, layout, &scaling, &vec![0.0; dims.s], &mut g)?;
     let d = dims.stat_len()?;
     let plain = g.view((0, 0), (d, d)).into_owned();
     let (reg, sv, t) = primal_regression_svd(dims, f, &plain, windows, opts)?;

@@ -24,7 +24,7 @@ use super::error::FitError;
 use super::order::choose_order;
 use super::primal::{dense, primal_regression_svd};
 use super::realize::{solve_abk, solve_cd, split_gram};
-use super::scaling::{scaled_rows, stat_scale_vector, unscale, ChannelSums, Scaling};
+use super::scaling::{scale_stat_gram, scaled_rows, unscale, ChannelSums, Scaling};
 use super::settings::{PbsidFit, PbsidOptions, Reg, Solver};
 use crate::lpvss::Signals;
 
@@ -97,6 +97,10 @@ pub struct PassOne {
     split: bool,
     tail: Tail,
     samples: usize,
+    /// The scheduling centre the Gram's vectors are taken about: the first chunk's mean,
+    /// so that the centring of [`scale_stat_gram`] moves it by a fraction of the range
+    /// (raw vectors of p = 370 +- 1 cancel beyond f64 there).
+    centre: Option<Vec<f64>>,
 }
 
 impl PassOne {
@@ -117,6 +121,7 @@ impl PassOne {
             split: false,
             tail: Tail::default(),
             samples: 0,
+            centre: None,
         })
     }
 
@@ -127,7 +132,21 @@ impl PassOne {
         self.sums.add(chunk, p.saturating_sub(self.samples));
         self.samples += chunk.len();
         let width = self.dims.sample_len();
-        let raw = scaled_rows(chunk, &Scaling::unit(&self.dims));
+        if chunk.len() == 0 {
+            return Ok(());
+        }
+        let centre = self.centre.get_or_insert_with(|| {
+            (0..chunk.p.ncols())
+                .map(|j| chunk.p.column(j).mean())
+                .collect()
+        });
+        let raw = scaled_rows(
+            chunk,
+            &Scaling {
+                p_center: centre.clone(),
+                ..Scaling::unit(&self.dims)
+            },
+        );
         let all = self.tail.extend(&raw, width, p);
         let rows = all.len() / width;
         if rows <= p {
@@ -182,13 +201,9 @@ impl PassOne {
             return Err(NotStreamed::KernelCheaper);
         }
         let scaling = self.sums.scaling(opts.sched_weight)?;
-        let dvec = stat_scale_vector(&dims, StatsLayout::Plain, &scaling)?;
         let mut g = dense(&self.gram, self.len);
-        for i in 0..self.len {
-            for j in 0..self.len {
-                g[(i, j)] *= dvec[i] * dvec[j];
-            }
-        }
+        let centre = self.centre.unwrap_or_else(|| vec![0.0; dims.s]);
+        scale_stat_gram(&dims, StatsLayout::Plain, &scaling, &centre, &mut g)?;
         let (reg, sv, t) = primal_regression_svd(&dims, f, &g, windows, opts)?;
         let (order, order_reason) = choose_order(&sv, windows, opts)?;
         let t = t.rows(0, order).into_owned();
