@@ -132,7 +132,7 @@ impl PassOne {
         self.sums.add(chunk, p.saturating_sub(self.samples));
         self.samples += chunk.len();
         let width = self.dims.sample_len();
-        if chunk.len() == 0 {
+        if chunk.is_empty() {
             return Ok(());
         }
         let centre = self.centre.get_or_insert_with(|| {
