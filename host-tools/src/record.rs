@@ -161,6 +161,7 @@ pub fn pbsid_fit_record(opts: &PbsidOptions, fit: &PbsidFit, train: Value) -> Va
         "feedthrough_regressors": if opts.feedthrough { fit.model.r() } else { 0 },
         "windows": fit.windows,
         "singular_values": fit.singular_values,
+        "centre": opts.centre.name(),
         "scaling": {
             "u": fit.scaling.u, "y": fit.scaling.y,
             "p_center": fit.scaling.p_center, "p_scale": fit.scaling.p_scale,

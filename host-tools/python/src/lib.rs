@@ -16,7 +16,9 @@ use lpvid_host::diagnose;
 use lpvid_host::lpvss::{scheduled, LpvSs, Signals};
 use lpvid_host::model::{ModelFile, ModelKind};
 use lpvid_host::observer::{HinfOptions, ObserverRequest, DEFAULT_MARGIN};
-use lpvid_host::pbsid::{BpdnScore, Order, PbsidOptions, Reg, Solver, DEFAULT_SCHED_WEIGHT};
+use lpvid_host::pbsid::{
+    BpdnScore, Centre, Order, PbsidOptions, Reg, Solver, DEFAULT_SCHED_WEIGHT,
+};
 use lpvid_host::pipeline::{self, reg_name, DataFile, PbsidSettings};
 use lpvid_host::simulate::{score, simulate, Mode, Score};
 use lpvid_host::statistics::Statistics;
@@ -444,7 +446,8 @@ fn pbsid_options(
 #[pyo3(signature = (train, past, order = "auto", reg = "tikhonov-gcv", kernel = false,
     primal = false, kernel_rows = None, kernel_tol = 0.0, refine = false, future = None,
     feedthrough = true, sched_weight = DEFAULT_SCHED_WEIGHT, max_order = 20, bpdn_score = None,
-    observer = "ls", scheduling_range = Vec::new(), lmi_margin = DEFAULT_MARGIN, val = None))]
+    observer = "ls", scheduling_range = Vec::new(), lmi_margin = DEFAULT_MARGIN, val = None,
+    centre = "auto"))]
 #[allow(clippy::too_many_arguments)]
 fn pbsid(
     py: Python<'_>,
@@ -466,8 +469,9 @@ fn pbsid(
     scheduling_range: Vec<String>,
     lmi_margin: f64,
     val: Option<&PyData>,
+    centre: &str,
 ) -> PyResult<(PyModel, String)> {
-    let fit = pbsid_options(
+    let mut fit = pbsid_options(
         past,
         order,
         reg,
@@ -482,6 +486,7 @@ fn pbsid(
         max_order,
         bpdn_score,
     )?;
+    fit.centre = centre.parse::<Centre>().map_err(|e| invalid(e.to_string()))?;
     let hinf = match observer {
         "ls" => false,
         "hinf" => true,

@@ -100,3 +100,18 @@ def test_pickle_round_trip():
     m = lpvid.pbsid(b1(), past=2)
     back = pickle.loads(pickle.dumps(m))
     assert back.to_json() == m.to_json()
+
+
+def test_pbsid_centre_is_the_cli_option(cli, in_root, tmp_path):
+    # B1's rho has 0 away from its mean: auto fits at 0 and at the mean and keeps 0, as the
+    # command line does; centre="mean" fixes the centre and compares nothing
+    out = tmp_path / "cli.json"
+    cli("pbsid", "--train", "fixtures/b1-train.csv", "--past", "3", "--centre", "mean", "--out", out)
+    m = lpvid.pbsid("fixtures/b1-train.csv", past=3, centre="mean")
+    assert m.to_json() == out.read_text()
+    assert m.fit["centre"] == "mean"
+    assert "centre_check" not in m.fit
+    auto = lpvid.pbsid("fixtures/b1-train.csv", past=3)
+    assert auto.fit["centre_check"]["chosen"] == "zero"
+    with pytest.raises(lpvid.LpvidError, match="scheduling centre"):
+        lpvid.pbsid("fixtures/b1-train.csv", past=3, centre="middle")

@@ -10,7 +10,7 @@ use super::files::{check_paths, Outputs};
 use super::{fmt_list, print_json, print_warnings, CliError, Ui};
 use crate::data::{DataError, Dataset};
 use crate::observer::{self, ObserverRequest};
-use crate::pbsid::{self, BpdnScore, Order, PbsidOptions, Reg, Solver};
+use crate::pbsid::{self, BpdnScore, Centre, Order, PbsidOptions, Reg, Solver};
 use crate::pipeline::{self, reg_name, DataFile, Identified, PbsidSettings};
 
 /// `lpvid pbsid` arguments.
@@ -88,6 +88,11 @@ pub struct PbsidArgs {
     /// Scheduling weight kappa: mean |p|^2 after internal scaling (prior on deep Kronecker terms).
     #[arg(long, default_value_t = pbsid::DEFAULT_SCHED_WEIGHT)]
     pub sched_weight: f64,
+    /// Where the scheduling signals are centred for the fit (the first local model of eq.
+    /// (14)): auto (with 0 away from a signal's mean both 0 and the mean are fitted and the
+    /// better free run on the training data kept), zero or mean.
+    #[arg(long, default_value = "auto", value_name = "auto|zero|mean")]
+    pub centre: Centre,
     /// Largest order `--order auto` may choose (at least 1).
     #[arg(long, default_value_t = 20, value_parser = clap::builder::RangedU64ValueParser::<usize>::new().range(1..))]
     pub max_order: usize,
@@ -118,6 +123,7 @@ pub(super) fn pbsid_options(a: &PbsidArgs, past: usize) -> PbsidOptions {
     o.refine = a.refine;
     o.max_order = a.max_order;
     o.bpdn_score = a.bpdn_score.unwrap_or_default();
+    o.centre = a.centre;
     o
 }
 
@@ -152,11 +158,25 @@ pub(super) fn print_pbsid(
         .filter(|(_, c)| **c != 0.0)
         .map(|(j, c)| format!("signal {} at {c:.6e}", j + 1))
         .collect();
+    // the centre the fit used and why (`--centre auto`: the free run chose between 0 and the
+    // mean when 0 lies away from the mean; else 0 inside the range, the mean outside)
+    let checked = run.model.fit.get("centre_check").is_some();
+    let why = match opts.centre {
+        _ if checked => "its free run on the training data better than at 0",
+        Centre::Mean => "--centre mean",
+        Centre::Zero => "--centre zero",
+        Centre::Auto => "0 lying outside its range",
+    };
     if !centred.is_empty() {
         writeln!(
             out,
-            "  scheduling centred at its mean, 0 lying outside its range (the first local model of eq. (14)): {}",
+            "  scheduling centred at its mean, {why} (the first local model of eq. (14)): {}",
             centred.join(", ")
+        )?;
+    } else if checked {
+        writeln!(
+            out,
+            "  scheduling centred at 0, its free run on the training data better than at the mean (the first local model of eq. (14))"
         )?;
     }
     match f.lambda {

@@ -292,6 +292,15 @@ impl Spec {
                 if let Some(m) = get_usize(fit, "max_order") {
                     opts.max_order = m.max(1);
                 }
+                // the centre the user's fit chose (its record before the centre existed:
+                // the rule, as that fit used)
+                if let Some(c) = fit
+                    .get("centre")
+                    .and_then(Value::as_str)
+                    .and_then(|s| s.parse().ok())
+                {
+                    opts.centre = c;
+                }
                 Ok(Spec {
                     signals: model.signals.clone(),
                     opts,

@@ -53,9 +53,10 @@ pub use order::{
     far_worse, free_run_order, select_order, FAR_WORSE_GAP, FAR_WORSE_RATIO, FLOOR_FACTOR,
 };
 pub use realize::{gamma_k, realize_from_states, realize_from_stats};
-pub use scaling::{unscale, Scaling, P_ZERO_INSIDE};
+pub use scaling::{centre_in_doubt, unscale, Scaling, P_ZERO_EDGE, P_ZERO_INSIDE};
 pub use settings::{
-    BpdnScore, Order, PbsidFit, PbsidOptions, Reg, SettingError, Solver, DEFAULT_SCHED_WEIGHT,
+    BpdnScore, Centre, Order, PbsidFit, PbsidOptions, Reg, SettingError, Solver,
+    DEFAULT_SCHED_WEIGHT,
 };
 
 use order::choose_order;
@@ -160,7 +161,7 @@ pub fn state_candidates(
     let q = dims.q()?;
     let r_ft = if opts.feedthrough { r } else { 0 };
     let f = check_options(&dims, windows, opts)?;
-    let scaling = ChannelSums::from_signals(sig, p).scaling(opts.sched_weight)?;
+    let scaling = ChannelSums::from_signals(sig, p).scaling(opts.sched_weight, opts.centre)?;
     let rows = scaled_rows(sig, &scaling);
     let slab = Slab::new(&rows, r, l, m)?;
 
@@ -349,7 +350,7 @@ pub fn fit_from_stats<S: AsRef<[f64]> + AsMut<[f64]>>(
         });
     }
     let f = check_options(dims, windows, opts)?;
-    let scaling = sums.scaling(opts.sched_weight)?;
+    let scaling = sums.scaling(opts.sched_weight, opts.centre)?;
     let mut g = dense(gram, len);
     scale_stat_gram(dims, layout, &scaling, &vec![0.0; dims.s], &mut g)?;
     let d = dims.stat_len()?;

@@ -8,6 +8,7 @@ use lpvid::{stat_vector_len, write_stat_vector, Gram, PbsidDims, Slab, StatsLayo
 use nalgebra::{DMatrix, DVector};
 
 use super::error::FitError;
+use super::settings::Centre;
 use crate::lpvss::{LpvSs, Signals};
 
 /// Internal scaling: u' = u / su, y' = y / sy, p' = (p - pc) / ps.
@@ -105,7 +106,8 @@ impl ChannelSums {
     }
 
     /// Internal scaling: inputs and outputs by their standard deviation; each scheduling
-    /// signal centred at c ([`Scaling::p_center`]) and scaled by the RMS of p - c times
+    /// signal centred at c ([`Scaling::p_center`], by `centre`; the rule below for
+    /// [`Centre::Auto`]) and scaled by the RMS of p - c times
     /// sqrt(s / kappa), so that the mean of |mu'|^2 over the s signals is kappa.
     ///
     /// The centre is where the first local model A^(1) of the fit sits, whose powers build
@@ -119,7 +121,7 @@ impl ChannelSums {
     /// before, B2 with p + 370 had validation VAF 56.9 % against 95.3 % at p + 0, and 43
     /// scheduled family plants at p + 20 a held-out error 9x theirs at p + 0
     /// (docs/bench-diagnose.md, "A scheduling signal far from 0").
-    pub(crate) fn scaling(&self, kappa: f64) -> Result<Scaling, FitError> {
+    pub(crate) fn scaling(&self, kappa: f64, centre: Centre) -> Result<Scaling, FitError> {
         let n = self.count;
         let stats = |(s1, s2): (f64, f64)| {
             let mean = s1 / n;
@@ -153,11 +155,12 @@ impl ChannelSums {
             if constant(mean, sd) {
                 return Err(FitError::ConstantScheduling(j + 1));
             }
-            // 0 inside the data's range: the centre stays there; else the data's mean
-            let c = if mean.abs() <= P_ZERO_INSIDE * sd {
-                0.0
-            } else {
-                mean
+            let c = match centre {
+                Centre::Zero => 0.0,
+                Centre::Mean => mean,
+                // 0 inside the data's range: the centre stays there; else the data's mean
+                Centre::Auto if mean.abs() <= P_ZERO_INSIDE * sd => 0.0,
+                Centre::Auto => mean,
             };
             sc.p_center[j] = c;
             // the RMS of p - c
@@ -171,6 +174,25 @@ impl ChannelSums {
 /// How many standard deviations from its mean p = 0 may lie and still be taken as inside the
 /// scheduling range ([`ChannelSums::scaling`]).
 pub const P_ZERO_INSIDE: f64 = 2.0;
+
+/// How many standard deviations from its mean p = 0 must lie before the centre is in doubt:
+/// from there on [`crate::pipeline::identify`] fits at both ([`centre_in_doubt`]).
+pub const P_ZERO_EDGE: f64 = 0.5;
+
+/// Whether the fit's centre of a scheduling signal of `sig` (samples `start`.., as the fit's
+/// scaling sums them) is in doubt: 0 lies more than [`P_ZERO_EDGE`] standard deviations from
+/// its mean, so 0 and the mean are different points of the range (or 0 lies outside it).
+/// B1's p1 = rho ~ U[0, 1] (1.74) and B3's p1 (0.71) are such signals; B2's (0.30) and B6's
+/// (0.02) are not.
+pub fn centre_in_doubt(sig: &Signals, start: usize) -> bool {
+    let sums = ChannelSums::from_signals(sig, start);
+    let n = sums.count;
+    sums.p.iter().any(|&(s1, s2)| {
+        let mean = s1 / n;
+        let sd = (s2 / n - mean * mean).max(0.0).sqrt();
+        mean.abs() > P_ZERO_EDGE * sd
+    })
+}
 
 /// The signals in scaled units laid out as the core's sample rows [u', y', mu'].
 impl Scaling {
@@ -437,5 +459,33 @@ mod tests {
             let err = (&got - &want).amax() / want.amax();
             assert!(err < 1e-12, "{r} {l} {s} {p} {layout:?}: {err}");
         }
+    }
+
+    #[test]
+    fn the_centre_follows_the_rule_or_the_option_and_the_doubt_starts_at_half_a_deviation() {
+        // p1 = 1 + sin: mean 1, sd 0.707 (0 at 1.41 sd: inside, in doubt); p2 = 5 + sin (7.1
+        // sd: outside); p3 = 0.2 + sin (0.28 sd: not in doubt)
+        let n = 400;
+        let wave = |c: f64| DMatrix::from_fn(n, 1, |k, _| c + (0.1 * k as f64).sin());
+        let sig = |c: f64| Signals {
+            u: DMatrix::from_fn(n, 1, |k, _| (0.37 * k as f64).cos()),
+            y: DMatrix::from_fn(n, 1, |k, _| (0.23 * k as f64).sin()),
+            p: wave(c),
+        };
+        let centre = |c: f64, how: Centre| {
+            ChannelSums::from_signals(&sig(c), 0)
+                .scaling(0.05, how)
+                .unwrap()
+                .p_center[0]
+        };
+        assert_eq!(centre(1.0, Centre::Auto), 0.0);
+        assert!((centre(5.0, Centre::Auto) - 5.0).abs() < 0.01);
+        assert!((centre(1.0, Centre::Mean) - 1.0).abs() < 0.01);
+        assert_eq!(centre(5.0, Centre::Zero), 0.0);
+        assert!(centre_in_doubt(&sig(1.0), 0));
+        assert!(centre_in_doubt(&sig(5.0), 0));
+        assert!(!centre_in_doubt(&sig(0.2), 0));
+        assert!(!centre_in_doubt(&sig(-0.2), 0));
+        assert!(centre_in_doubt(&sig(-1.0), 0));
     }
 }

@@ -43,6 +43,9 @@ pub enum SettingError {
     /// Not a positive integer or `auto`.
     #[error("order must be a positive integer or 'auto', got '{0}'")]
     Order(String),
+    /// Not a scheduling centre name.
+    #[error("unknown scheduling centre '{0}' (expected auto, zero or mean)")]
+    UnknownCentre(String),
 }
 
 impl std::str::FromStr for Reg {
@@ -148,6 +151,47 @@ impl Solver {
     }
 }
 
+/// Where a scheduling signal is centred for the fit: the point of the first local model
+/// A^(1) whose powers build Gamma^p in eq. (14) of the kernel paper, and the point the
+/// regularisation of (13) shrinks the p-dependence towards ([`crate::pbsid::Scaling`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum Centre {
+    /// p = 0 while 0 lies within the data's range (the mean +-
+    /// [`crate::pbsid::P_ZERO_INSIDE`] standard deviations), else the mean; where the centre is
+    /// in doubt ([`crate::pbsid::centre_in_doubt`]), [`crate::pipeline::identify`] fits at both
+    /// and keeps the one whose model runs better in free run (the choice is then recorded as
+    /// `Zero` or `Mean`).
+    #[default]
+    Auto,
+    /// Always p = 0 (the papers' choice).
+    Zero,
+    /// Always the mean of each scheduling signal over the training record.
+    Mean,
+}
+
+impl Centre {
+    /// Name used on the command line and in the fit record.
+    pub fn name(&self) -> &'static str {
+        match self {
+            Centre::Auto => "auto",
+            Centre::Zero => "zero",
+            Centre::Mean => "mean",
+        }
+    }
+}
+
+impl std::str::FromStr for Centre {
+    type Err = SettingError;
+    fn from_str(s: &str) -> Result<Self, SettingError> {
+        match s {
+            "auto" => Ok(Centre::Auto),
+            "zero" => Ok(Centre::Zero),
+            "mean" => Ok(Centre::Mean),
+            other => Err(SettingError::UnknownCentre(other.to_string())),
+        }
+    }
+}
+
 /// Settings of an LPV-PBSID_opt fit.
 #[derive(Debug, Clone)]
 pub struct PbsidOptions {
@@ -183,6 +227,8 @@ pub struct PbsidOptions {
     pub refine: bool,
     /// How BPDN-SV scores its path (only read with `Reg::BpdnSv`).
     pub bpdn_score: BpdnScore,
+    /// Where the scheduling signals are centred.
+    pub centre: Centre,
 }
 
 impl PbsidOptions {
@@ -201,6 +247,7 @@ impl PbsidOptions {
             kernel_tol: 0.0,
             refine: false,
             bpdn_score: BpdnScore::Simulation,
+            centre: Centre::Auto,
         }
     }
 }

@@ -200,7 +200,7 @@ impl PassOne {
         if opts.solver == Solver::Auto && !super::primal_is_cheaper(q + r_ft, windows, p) {
             return Err(NotStreamed::KernelCheaper);
         }
-        let scaling = self.sums.scaling(opts.sched_weight)?;
+        let scaling = self.sums.scaling(opts.sched_weight, opts.centre)?;
         let mut g = dense(&self.gram, self.len);
         let centre = self.centre.unwrap_or_else(|| vec![0.0; dims.s]);
         scale_stat_gram(&dims, StatsLayout::Plain, &scaling, &centre, &mut g)?;

@@ -469,12 +469,15 @@ def pbsid(
     bpdn_score: Optional[str] = None,
     val: Any = None,
     name: Optional[str] = None,
+    centre: str = "auto",
 ) -> Model:
     """LPV-PBSID_opt, as ``lpvid pbsid`` (same options, same defaults, same model).
 
     ``val``: validation data (scored by free run; used by ``reg='bpdn-sv'``), any data form
     the API accepts (a tuple ``(u, y, p)`` for arrays). ``name`` names array data in the fit
-    record and in errors. Returns a :class:`Model` with ``train_score`` / ``val_score``."""
+    record and in errors. ``centre``: where the scheduling signals are centred in the fit
+    (``auto``, ``zero`` or ``mean``, as ``--centre``). Returns a :class:`Model` with
+    ``train_score`` / ``val_score``."""
     past = _positive_int("past", past)
     train = _data(u, y, p, source=name)
     v = _data(val) if val is not None else None
@@ -497,6 +500,7 @@ def pbsid(
         scheduling_range=_ranges(scheduling_range),
         lmi_margin=float(lmi_margin),
         val=v,
+        centre=str(centre),
     )
     return Model(native, json.loads(summary))
 
