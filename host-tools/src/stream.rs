@@ -3,7 +3,9 @@
 //!
 //! - `lpvid pbsid`: the chunks feed the streamed primal fit ([`crate::pbsid::stream`]: pass 1
 //!   statistics, pass 2 realization), then a third pass scores the model by free-run
-//!   simulation, the state carried across chunks.
+//!   simulation, the state carried across chunks. With the scheduling centre in doubt
+//!   (`--centre auto`) the passes carry the fits at 0 and at the mean side by side and the
+//!   third keeps the one [`crate::pipeline::identify`] would keep.
 //! - `lpvid validate` ([`score_streaming`]) and `lpvid simulate` ([`simulate_streaming`]): an
 //!   lpv-ss model run over the chunks in free run or one-step prediction, from the zero
 //!   state or from one estimated on the first samples ([`crate::simulate::estimate_x0`] on
@@ -32,7 +34,7 @@ use std::fs::File;
 use std::io::{BufRead, BufReader};
 use std::path::Path;
 
-use serde_json::json;
+use serde_json::{json, Value};
 
 use nalgebra::DMatrix;
 
@@ -40,9 +42,10 @@ use crate::data::{stage_writer, DataError, Dataset, StagedWrite, MAX_LINE_BYTES}
 use crate::lpvss::{LpvSs, Signals};
 use crate::model::{describe, Feedback, ModelFile, ModelKind, SignalMap, SAMPLE_INDEX};
 use crate::observer;
-use crate::pbsid::stream::{streamable, PassOne};
-use crate::pipeline::{pbsid_fit_record, pbsid_warnings, Identified, PbsidSettings};
-use crate::simulate::{estimate_x0, free_run_ss_into, Mode, Score, DIVERGED, X0};
+use crate::pbsid::stream::{streamable, NotStreamed, PassOne};
+use crate::pbsid::{Centre, PbsidFit};
+use crate::pipeline::{pbsid_fit_record, pbsid_warnings, pick_centre, Identified, PbsidSettings};
+use crate::simulate::{estimate_x0, free_run_ss_into, Mode, Score, DIVERGED, X0, X0_SAMPLES};
 
 /// Rows per chunk: the memory of the streamed path is a few chunks, whatever the file.
 pub const CHUNK_ROWS: usize = 8192;
@@ -336,6 +339,26 @@ impl<'a> ChunkRun<'a> {
         }
     }
 
+    /// The normalised free-run error of [`crate::pipeline::held_out_error`] from the running
+    /// sums: the mean over outputs of MSE / var y over the samples after `skip`; infinite
+    /// when the run diverges or scores at most one sample.
+    fn free_run_error(&self) -> f64 {
+        let skipped = self.skip.min(self.k);
+        if self.k <= skipped + 1 || self.y.is_empty() {
+            return f64::INFINITY;
+        }
+        let n = (self.k - skipped) as f64;
+        let total: f64 = (0..self.y.len())
+            .map(|j| (self.sse[j] / n) / (self.y[j].1 / n).max(1e-300))
+            .sum();
+        let e = total / self.y.len() as f64;
+        if e.is_finite() {
+            e
+        } else {
+            f64::INFINITY
+        }
+    }
+
     fn score(&self, file: &str) -> Score {
         let skipped = self.skip.min(self.k);
         let n = (self.k - skipped) as f64;
@@ -461,13 +484,76 @@ pub fn identify_streaming_chunks(
     {
         return None;
     }
-    let mut two = one?.finish(opts).ok()?;
-    // pass 2: the realization
+    // the centre in doubt (`--centre auto`, 0 away from a scheduling signal's mean, the
+    // criterion of the in-memory fit on the same channel sums): pass 1 finished at 0 and at
+    // the mean, both realized in pass 2, both free runs scored in pass 3, the better kept
+    // by the in-memory fit's choice ([`crate::pipeline::pick_centre`])
+    let mut one = one?;
+    let check = opts.centre == Centre::Auto && one.centre_in_doubt();
+    let centres = if check {
+        vec![Centre::Zero, Centre::Mean]
+    } else {
+        vec![opts.centre]
+    };
+    // (centre, pass 2) of each fit that pass 1 finished; a failed fit drops out, as it does
+    // in-memory (`pipeline::choose_centre`); the kernel form's turn leaves it all to that path
+    let mut twos = Vec::new();
+    for &c in &centres {
+        let mut o = opts.clone();
+        o.centre = c;
+        match one.finish(&o) {
+            Ok(t) => twos.push((c, Some(t))),
+            Err(NotStreamed::Fit(_)) => {}
+            Err(_) => return None,
+        }
+    }
+    drop(one);
+    if twos.is_empty() {
+        return None;
+    }
+    // pass 2: the realizations
     for_each_chunk(path, chunk_rows, |ds| {
         let sig = map.evaluate(ds).map_err(|_| ())?;
-        two.update(&sig).map_err(|_| ())
+        for (_, two) in twos.iter_mut() {
+            if two.as_mut().is_some_and(|t| t.update(&sig).is_err()) {
+                *two = None;
+            }
+        }
+        Ok(())
     })?;
-    let fit = two.finish().ok()?;
+    let mut fits: Vec<(Centre, PbsidFit)> = twos
+        .into_iter()
+        .filter_map(|(c, two)| Some((c, two?.finish().ok()?)))
+        .collect();
+    if fits.is_empty() {
+        return None;
+    }
+    // pass 3: each fit's free run on the training file from x0 = 0 (the score reported;
+    // the streamed observer step keeps the least-squares model, so this is the free run of
+    // the model written) and, when the centre is checked, from an initial state estimated
+    // on the first samples (the error `pipeline::held_out_error` scores)
+    let x0_rows = (rows / 4).min(X0_SAMPLES);
+    let FreeRuns {
+        scores,
+        errors,
+        dims,
+    } = free_runs(path, chunk_rows, &map, &fits, check, x0_rows)?;
+    let (chosen, centre_check) = if check {
+        let entry = |c: Centre| {
+            let i = fits.iter().position(|f| f.0 == c)?;
+            Some((&fits[i].1, errors[i]))
+        };
+        let (c, record) = pick_centre(entry(Centre::Zero), entry(Centre::Mean))?;
+        (c, Some(record))
+    } else {
+        (opts.centre, None)
+    };
+    let i = fits.iter().position(|f| f.0 == chosen)?;
+    let fit = fits.swap_remove(i).1;
+    let train_score = scores.into_iter().nth(i)?;
+    let mut chosen_opts = opts.clone();
+    chosen_opts.centre = chosen;
+    let opts = &chosen_opts;
     let names: Vec<String> = map.scheduling.iter().skip(1).map(|p| describe(p)).collect();
     let mean: Vec<f64> = p_sum.iter().map(|s| s / rows as f64).collect();
     let obs_step = observer::observer_step_streamed(
@@ -485,25 +571,15 @@ pub fn identify_streaming_chunks(
         "fnv1a64": fnv,
     });
     let mut record = pbsid_fit_record(opts, &fit, train_record);
+    if let (Some(c), Value::Object(m)) = (centre_check, &mut record) {
+        m.insert("centre_check".into(), c);
+    }
     obs_step.annotate(&mut record);
     let model = ModelFile {
         kind: ModelKind::Ss(obs_step.model.clone()),
         signals: map.clone(),
         fit: record,
     };
-    // pass 3: the free-run score on the training file
-    let ModelKind::Ss(ss) = &model.kind else {
-        return None;
-    };
-    let mut run = ChunkRun::new(ss, Mode::FreeRun, &vec![0.0; ss.n()], 0);
-    let mut dims = (0, 0, 0);
-    for_each_chunk(path, chunk_rows, |ds| {
-        let sig = model.signals.evaluate(ds).map_err(|_| ())?;
-        dims = (sig.u.ncols(), sig.y.ncols(), sig.p.ncols());
-        run.update(&sig, None);
-        Ok(())
-    })?;
-    let train_score = run.score(&path.display().to_string());
     let val_score = match val {
         Some(v) => Some(crate::simulate::score(&model, v, crate::simulate::Mode::FreeRun).ok()?),
         None => None,
@@ -519,6 +595,97 @@ pub fn identify_streaming_chunks(
         val_score,
         observer: obs_step,
     })
+}
+
+/// Pass 3 of [`identify_streaming_chunks`]: each of `fits`' models run freely over the
+/// file from x0 = 0 (its training score) and, with `estimate`, from an initial state
+/// estimated on the first `x0_rows` rows (held until read, as [`run_file`] does), scored by
+/// [`ChunkRun::free_run_error`]. Memory: the runs' states and the chunks holding those rows.
+fn free_runs(
+    path: &Path,
+    chunk_rows: usize,
+    map: &SignalMap,
+    fits: &[(Centre, PbsidFit)],
+    estimate: bool,
+    x0_rows: usize,
+) -> Option<FreeRuns> {
+    let file = path.display().to_string();
+    let mut zero: Vec<ChunkRun> = fits
+        .iter()
+        .map(|(_, f)| ChunkRun::new(&f.model, Mode::FreeRun, &vec![0.0; f.model.n()], 0))
+        .collect();
+    let mut est: Option<Vec<ChunkRun>> = None;
+    let mut held: Vec<Dataset> = Vec::new();
+    let mut held_rows = 0;
+    // the estimated runs from the held rows' head, then those rows through them
+    let start = |held: &mut Vec<Dataset>| -> Result<Vec<ChunkRun>, ()> {
+        let (hs, hf) = match head_of(held, x0_rows) {
+            Some(head) if x0_rows > 0 => (
+                Some(map.evaluate(&head).map_err(|_| ())?),
+                map.feedback(&head).map_err(|_| ())?,
+            ),
+            _ => (None, Feedback::default()),
+        };
+        let mut runs: Vec<ChunkRun> = fits
+            .iter()
+            .map(|(_, f)| {
+                let x = match &hs {
+                    Some(hs) => estimate_x0(&f.model, hs, &hf, x0_rows),
+                    None => nalgebra::DVector::zeros(f.model.n()),
+                };
+                ChunkRun::new(&f.model, Mode::FreeRun, x.as_slice(), x0_rows)
+            })
+            .collect();
+        for ds in held.drain(..) {
+            let sig = map.evaluate(&ds).map_err(|_| ())?;
+            runs.iter_mut().for_each(|r| r.update(&sig, None));
+        }
+        Ok(runs)
+    };
+    let mut dims = (0, 0, 0);
+    for_each_chunk(path, chunk_rows, |ds| {
+        let sig = map.evaluate(ds).map_err(|_| ())?;
+        dims = (sig.u.ncols(), sig.y.ncols(), sig.p.ncols());
+        zero.iter_mut().for_each(|r| r.update(&sig, None));
+        if !estimate {
+            return Ok(());
+        }
+        match est.as_mut() {
+            Some(runs) => runs.iter_mut().for_each(|r| r.update(&sig, None)),
+            None => {
+                held.push(ds.clone());
+                held_rows += ds.len();
+                if held_rows >= x0_rows {
+                    est = Some(start(&mut held)?);
+                }
+            }
+        }
+        Ok(())
+    })?;
+    let errors = match (estimate, est) {
+        (false, _) => vec![f64::INFINITY; fits.len()],
+        (true, Some(runs)) => runs.iter().map(ChunkRun::free_run_error).collect(),
+        (true, None) => start(&mut held)
+            .ok()?
+            .iter()
+            .map(ChunkRun::free_run_error)
+            .collect(),
+    };
+    let scores = zero.iter().map(|r| r.score(&file)).collect();
+    Some(FreeRuns {
+        scores,
+        errors,
+        dims,
+    })
+}
+
+/// Pass 3's results, per fit in the order given: the score of the free run from x0 = 0,
+/// the error from the estimated initial state (infinite when not estimated); and the
+/// signals' dimensions (inputs, outputs, scheduling signals).
+struct FreeRuns {
+    scores: Vec<Score>,
+    errors: Vec<f64>,
+    dims: (usize, usize, usize),
 }
 
 /// Why the streamed validate/simulate hands a model to the in-memory path, if it does:

@@ -159,6 +159,12 @@ fn streamed_file_fit_gives_the_in_memory_model() {
             let diff = max_output_diff(a, b, &systems::b1(1000, 0.0, 99).val);
             assert!(diff < 1e-7, "{reg:?} chunk {chunk}: {diff}");
             assert_eq!(mem.fit.order, st.fit.order);
+            // B1's p1 has 0 at 1.74 standard deviations from its mean: both choose 0
+            let chosen = |id: &lpvid_host::pipeline::Identified| {
+                id.model.fit["centre_check"]["chosen"].clone()
+            };
+            assert_eq!(chosen(&mem), "zero");
+            assert_eq!(chosen(&st), "zero");
             assert_eq!(mem.model.fit["train"], st.model.fit["train"], "file record");
             assert_eq!(mem.samples, st.samples);
             for (x, y) in mem.train_score.vaf.iter().zip(&st.train_score.vaf) {
@@ -191,6 +197,64 @@ fn streamed_file_fit_gives_the_in_memory_model() {
     lines[700] = lines[700].replacen(|c: char| c.is_ascii_digit(), "x", 1);
     std::fs::write(&bad, lines.join("\n")).unwrap();
     assert!(identify_streaming_chunks(&bad, None, &PbsidSettings::new(3), 100).is_none());
+}
+
+#[test]
+fn a_streamed_fit_with_its_centre_in_doubt_chooses_as_the_in_memory_fit() {
+    // 0 more than half a standard deviation from p1's mean (B3 0.71, B1 1.74): the streamed
+    // fit finishes pass 1 at 0 and at the mean, realizes both in pass 2, scores both free
+    // runs from an estimated initial state in pass 3 and keeps the one the in-memory fit
+    // keeps (pipeline::pick_centre), whatever the chunks
+    use lpvid_host::model::ModelKind;
+    use lpvid_host::pipeline::{identify, DataFile, PbsidSettings};
+    use lpvid_host::stream::identify_streaming_chunks;
+    // the true orders fixed: a streamed fit has no free-run check of the order (B3's
+    // automatic order streamed is 1, in memory the check's)
+    for (name, p, n, chosen) in [("b3", 2, 4, "mean"), ("b1", 3, 4, "zero")] {
+        let path = std::path::PathBuf::from(format!("../fixtures/{name}-train.csv"));
+        let val_path = std::path::PathBuf::from(format!("../fixtures/{name}-val.csv"));
+        let val = lpvid_host::data::Dataset::read_csv(&val_path).unwrap();
+        let mut settings = PbsidSettings::new(p);
+        settings.fit.order = Order::Fixed(n);
+        let mem = identify(&DataFile::read(&path).unwrap(), Some(&val), &settings).unwrap();
+        let check = &mem.model.fit["centre_check"];
+        assert_eq!(check["chosen"], chosen, "{name}: {check}");
+        let val_sig = mem.model.signals.evaluate(&val).unwrap();
+        let error = |c: &serde_json::Value, k: usize| c["free_run"][k]["error"].as_f64().unwrap();
+        for chunk in [1, 333, 4096] {
+            let st = identify_streaming_chunks(&path, Some(&val), &settings, chunk).unwrap();
+            let sc = &st.model.fit["centre_check"];
+            assert_eq!(sc["chosen"], chosen, "{name} chunk {chunk}: {sc}");
+            assert_eq!(st.model.fit["centre"], chosen);
+            assert_eq!(mem.fit.scaling, st.fit.scaling, "{name} chunk {chunk}");
+            assert_eq!(mem.fit.order, st.fit.order, "{name} chunk {chunk}");
+            // the same errors to rounding: B1's model at its mean has an unstable predictor
+            // (a_streamed_fit_of_a_far_scheduling_signal_gives_the_in_memory_model), whose
+            // rounding the estimated initial state carries to 1e-5 of its error
+            for k in 0..2 {
+                let (a, b) = (error(check, k), error(sc, k));
+                assert!(
+                    (a - b).abs() <= 1e-4 * a,
+                    "{name} chunk {chunk} {k}: {a} {b}"
+                );
+            }
+            let (ModelKind::Ss(a), ModelKind::Ss(b)) = (&mem.model.kind, &st.model.kind) else {
+                panic!()
+            };
+            let diff = max_output_diff(a, b, &val_sig);
+            println!(
+                "{name} chunk {chunk}: {chosen} kept, free-run errors at 0 / the mean {:.6e} / {:.6e} (in memory {:.6e} / {:.6e}), model differs by {diff:.2e}",
+                error(sc, 0),
+                error(sc, 1),
+                error(check, 0),
+                error(check, 1)
+            );
+            assert!(diff < 1e-7, "{name} chunk {chunk}: {diff}");
+            for (x, y) in mem.train_score.vaf.iter().zip(&st.train_score.vaf) {
+                assert!((x - y).abs() < 1e-6, "{x} {y}");
+            }
+        }
+    }
 }
 
 /// `sig` with every scheduling signal moved by `off`.

@@ -185,13 +185,20 @@ pub const P_ZERO_EDGE: f64 = 0.5;
 /// B1's p1 = rho ~ U[0, 1] (1.74) and B3's p1 (0.71) are such signals; B2's (0.30) and B6's
 /// (0.02) are not.
 pub fn centre_in_doubt(sig: &Signals, start: usize) -> bool {
-    let sums = ChannelSums::from_signals(sig, start);
-    let n = sums.count;
-    sums.p.iter().any(|&(s1, s2)| {
-        let mean = s1 / n;
-        let sd = (s2 / n - mean * mean).max(0.0).sqrt();
-        mean.abs() > P_ZERO_EDGE * sd
-    })
+    ChannelSums::from_signals(sig, start).centre_in_doubt()
+}
+
+impl ChannelSums {
+    /// [`centre_in_doubt`] from the channel sums: the one criterion of the in-memory fit and
+    /// the streamed one ([`crate::pbsid::stream::PassOne::centre_in_doubt`]).
+    pub(crate) fn centre_in_doubt(&self) -> bool {
+        let n = self.count;
+        self.p.iter().any(|&(s1, s2)| {
+            let mean = s1 / n;
+            let sd = (s2 / n - mean * mean).max(0.0).sqrt();
+            mean.abs() > P_ZERO_EDGE * sd
+        })
+    }
 }
 
 /// The signals in scaled units laid out as the core's sample rows [u', y', mu'].

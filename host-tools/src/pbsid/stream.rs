@@ -177,11 +177,23 @@ impl PassOne {
         self.samples
     }
 
+    /// Whether the scheduling centre is in doubt ([`super::centre_in_doubt`], from the same
+    /// channel sums): with [`super::Centre::Auto`] the caller then finishes at `Zero` and at
+    /// `Mean` and keeps the better free run, as [`crate::pipeline::identify`] does.
+    pub fn centre_in_doubt(&self) -> bool {
+        self.sums.centre_in_doubt()
+    }
+
     /// Regression (13), the SVD and the order from the accumulated statistics: what pass 2
     /// needs. `Err(KernelCheaper)` when the options' automatic choice is the kernel form.
-    pub fn finish(mut self, opts: &PbsidOptions) -> Result<PassTwo, NotStreamed> {
+    /// The statistics stay, so the same pass 1 can be finished with other options (another
+    /// centre).
+    pub fn finish(&mut self, opts: &PbsidOptions) -> Result<PassTwo, NotStreamed> {
         if self.split {
+            // merged once: the second thread's share then starts again from zero
             self.gram.merge(&self.gram2)?;
+            self.gram2.reset();
+            self.split = false;
         }
         let dims = self.dims;
         let p = dims.p;
@@ -202,7 +214,7 @@ impl PassOne {
         }
         let scaling = self.sums.scaling(opts.sched_weight, opts.centre)?;
         let mut g = dense(&self.gram, self.len);
-        let centre = self.centre.unwrap_or_else(|| vec![0.0; dims.s]);
+        let centre = self.centre.clone().unwrap_or_else(|| vec![0.0; dims.s]);
         scale_stat_gram(&dims, StatsLayout::Plain, &scaling, &centre, &mut g)?;
         let (reg, sv, t) = primal_regression_svd(&dims, f, &g, windows, opts)?;
         let (order, order_reason) = choose_order(&sv, windows, opts)?;
