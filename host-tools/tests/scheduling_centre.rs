@@ -23,10 +23,10 @@ fn the_centre_chosen_by_the_free_run_beats_both_fixed_centres_on_plant_families(
         // how often auto lost more than 10 % against the better of the two fixed centres
         let lost = rows.iter().filter(|e| e[2] > 1.1 * e[0].min(e[1])).count();
         println!("offset {offset}: mean log10 error zero {zero:.3}, mean {mean:.3}, auto {auto:.3}; auto more than 10 % worse than the better fixed centre on {lost} of {}", rows.len());
-        // measured: offset 0.5 zero -1.066 mean -1.125 auto -1.139; offset 1 zero -0.922
-        // mean -1.125 auto -1.137 (ranges 1000 and 61000)
+        // measured (ranges 1000 and 61000): offset 0.5 zero -1.062, mean -1.122, auto -1.139,
+        // lost on 2 of 83; offset 1 zero -0.922, mean -1.122, auto -1.136, lost on 0
         assert!(auto < zero - 0.05, "auto {auto} against zero {zero}");
         assert!(auto < mean + 0.02, "auto {auto} against mean {mean}");
-        assert!(lost * 5 <= rows.len(), "{lost} of {}", rows.len());
+        assert!(lost * 10 <= rows.len(), "{lost} of {}", rows.len());
     }
 }

@@ -158,9 +158,9 @@ impl Solver {
 pub enum Centre {
     /// p = 0 while 0 lies within the data's range (the mean +-
     /// [`crate::pbsid::P_ZERO_INSIDE`] standard deviations), else the mean; where the centre is
-    /// in doubt ([`crate::pbsid::centre_in_doubt`]), [`crate::pipeline::identify`] fits at both
-    /// and keeps the one whose model runs better in free run (the choice is then recorded as
-    /// `Zero` or `Mean`).
+    /// in doubt ([`crate::pbsid::centre_in_doubt`]), [`crate::pipeline::identify`] and the
+    /// streamed fit fit at both and keep the one whose model runs better in free run (the
+    /// choice is then recorded as `Zero` or `Mean`).
     #[default]
     Auto,
     /// Always p = 0 (the papers' choice).
