@@ -121,13 +121,24 @@ impl ChannelSums {
     /// before, B2 with p + 370 had validation VAF 56.9 % against 95.3 % at p + 0, and 43
     /// scheduled family plants at p + 20 a held-out error 9x theirs at p + 0
     /// (docs/bench-diagnose.md, "A scheduling signal far from 0").
+    /// The mean and standard deviation of one channel's (sum, sum of squares).
+    fn mean_sd(&self, (s1, s2): (f64, f64)) -> (f64, f64) {
+        let mean = s1 / self.count;
+        let var = (s2 / self.count - mean * mean).max(0.0);
+        (mean, var.sqrt())
+    }
+
+    /// [`centre_in_doubt`] from the channel sums: the one criterion of the in-memory fit and
+    /// the streamed one ([`crate::pbsid::stream::PassOne::centre_in_doubt`]).
+    pub(crate) fn centre_in_doubt(&self) -> bool {
+        self.p.iter().any(|&sums| {
+            let (mean, sd) = self.mean_sd(sums);
+            mean.abs() > P_ZERO_EDGE * sd
+        })
+    }
+
     pub(crate) fn scaling(&self, kappa: f64, centre: Centre) -> Result<Scaling, FitError> {
-        let n = self.count;
-        let stats = |(s1, s2): (f64, f64)| {
-            let mean = s1 / n;
-            let var = (s2 / n - mean * mean).max(0.0);
-            (mean, var.sqrt())
-        };
+        let stats = |sums| self.mean_sd(sums);
         let constant = |mean: f64, sd: f64| sd <= 1e-12 * mean.abs().max(1e-300) || sd == 0.0;
         let mut sc = Scaling {
             u: vec![],
@@ -186,19 +197,6 @@ pub const P_ZERO_EDGE: f64 = 0.5;
 /// (0.02) are not.
 pub fn centre_in_doubt(sig: &Signals, start: usize) -> bool {
     ChannelSums::from_signals(sig, start).centre_in_doubt()
-}
-
-impl ChannelSums {
-    /// [`centre_in_doubt`] from the channel sums: the one criterion of the in-memory fit and
-    /// the streamed one ([`crate::pbsid::stream::PassOne::centre_in_doubt`]).
-    pub(crate) fn centre_in_doubt(&self) -> bool {
-        let n = self.count;
-        self.p.iter().any(|&(s1, s2)| {
-            let mean = s1 / n;
-            let sd = (s2 / n - mean * mean).max(0.0).sqrt();
-            mean.abs() > P_ZERO_EDGE * sd
-        })
-    }
 }
 
 /// The signals in scaled units laid out as the core's sample rows [u', y', mu'].
