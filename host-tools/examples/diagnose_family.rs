@@ -4,7 +4,10 @@
 //! [first seed] [held-out samples] [effects, comma-separated]` (defaults 10, 2000, 1000, N,
 //! all). `LPVID_FAMILY_SHAPE=INPUTSxOUTPUTS` (e.g. `2x2`, `2x1`: two inputs, one output; default
 //! `1x1`) draws multi-input multi-output plants instead (`plants::family_case_shaped`); the
-//! printed lines and tables are the same. The figures are in docs/bench-diagnose.md.
+//! printed lines and tables are the same. `LPVID_FAMILY_VERBOSE=1` prints each plant's
+//! findings and variants; `LPVID_FAMILY_DUMP=DIR` writes each plant's records and the user's
+//! `lpvid pbsid` options (`DIR/EFFECT-SEED.train.csv`, `.val.csv`, `.args`) to trace a miss
+//! through the command line. The figures are in docs/bench-diagnose.md.
 
 #[path = "../tests/diagnose_support/family.rs"]
 mod family;

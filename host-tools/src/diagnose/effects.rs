@@ -168,6 +168,12 @@ pub struct Candidate {
     pub null: Option<Spec>,
 }
 
+/// How many times the half-width of the measured outputs' range a simulated output may stray
+/// from its middle before the model is taken to have run away ([`Eval::runs_away`]): an
+/// order of magnitude, far beyond what any fit that tracks the data produces (a model that
+/// explains nothing stays within about the range), fixed before measuring.
+pub const RUNAWAY: f64 = 10.0;
+
 /// Held-out samples used to estimate the initial state of a free run before it is scored:
 /// a quarter of the record at most, [`crate::simulate::X0_SAMPLES`] at most (the rule of the
 /// pipeline's order check, [`crate::pipeline::held_out_error`]). A held-out record starts in
@@ -245,6 +251,31 @@ impl Eval {
                     / l
             })
             .collect()
+    }
+
+    /// Whether the simulated outputs of `mode` leave the measured outputs' range on the
+    /// scored rows by more than [`RUNAWAY`] times its half-width about its middle, or are not
+    /// finite: the refit model ran away from the data (a frozen pole outside the unit circle
+    /// where the record dwells, say), which says the estimate failed, not how good its
+    /// structure is ([`super::replicate::Halves`]).
+    pub fn runs_away(&self, mode: Mode) -> bool {
+        let yhat = match mode {
+            Mode::FreeRun => &self.yhat_free,
+            Mode::Predictor => &self.yhat_pred,
+        };
+        let rows = self.skip..self.y.nrows();
+        (0..self.y.ncols()).any(|j| {
+            let (lo, hi) = rows
+                .clone()
+                .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), k| {
+                    (a.min(self.y[(k, j)]), b.max(self.y[(k, j)]))
+                });
+            let (mid, half) = (0.5 * (lo + hi), 0.5 * (hi - lo));
+            rows.clone().any(|k| {
+                let v = yhat[(k, j)];
+                !v.is_finite() || (half > 0.0 && (v - mid).abs() > RUNAWAY * half)
+            })
+        })
     }
 
     /// Normalised mean square error of a mode (infinite when it diverged).
@@ -810,24 +841,11 @@ pub fn is_arx(m: &ModelFile) -> bool {
 /// when the record has at most [`MAX_KERNEL_WINDOWS`] windows, as the scheduling effects
 /// are; otherwise p + 1 is tried, then nothing (None; also for LPV-ARX models).
 pub fn larger_past(spec: &Spec, rows: usize) -> Option<Candidate> {
-    if spec.arx.is_some() {
-        return None;
-    }
     let past = spec.opts.past;
-    let q_base = regressors(spec);
     for p in [past + 2, past + 1] {
-        let mut sp = spec.clone();
-        sp.opts.past = p;
-        if let Some(f) = sp.opts.future {
-            sp.opts.future = Some(f.min(p));
-        }
-        let q = regressors(&sp);
-        if q > MAX_REGRESSORS.max(2 * q_base) {
-            if rows.saturating_sub(p) > MAX_KERNEL_WINDOWS {
-                continue;
-            }
-            sp.opts.solver = crate::pbsid::Solver::Dual;
-        }
+        let Some(sp) = with_past(spec, p, rows) else {
+            continue;
+        };
         let detail = format!(
             "past window {p} (was {past}), order {}",
             match sp.opts.order {
@@ -843,6 +861,32 @@ pub fn larger_past(spec: &Spec, rows: usize) -> Option<Candidate> {
         });
     }
     None
+}
+
+/// `spec` with past window `p` (a future window capped at `p`), the structure it is nested in
+/// alike: in the kernel form (`Solver::Dual`) when its regression grows beyond
+/// [`MAX_REGRESSORS`] (or twice its own) and the record of `rows` samples has at most
+/// [`MAX_KERNEL_WINDOWS`] windows ([`larger_past`]). None for an LPV-ARX model (no past
+/// window) or when neither form can fit it.
+pub fn with_past(spec: &Spec, p: usize, rows: usize) -> Option<Spec> {
+    if spec.arx.is_some() {
+        return None;
+    }
+    let mut sp = spec.clone();
+    sp.opts.past = p;
+    if let Some(f) = sp.opts.future {
+        sp.opts.future = Some(f.min(p));
+    }
+    if regressors(&sp) > MAX_REGRESSORS.max(2 * regressors(spec)) {
+        if rows.saturating_sub(p) > MAX_KERNEL_WINDOWS {
+            return None;
+        }
+        sp.opts.solver = crate::pbsid::Solver::Dual;
+    }
+    if let Some(n) = &spec.nested_in {
+        sp.nested_in = Some(Box::new(with_past(n, p, rows)?));
+    }
+    Some(sp)
 }
 
 /// Whether `c` is the structure `larger` of [`larger_past`] (the same past window and order

@@ -19,6 +19,7 @@ use std::cell::OnceCell;
 use super::effects::{self, evidence, Candidate, Effect, Eval, Finding, Scored};
 use super::memory::{self, Basis, Memory};
 use super::refit::{Fitted, Spec};
+use super::replicate::{Halves, Replication};
 use super::residual::{ResidualReport, ALPHA};
 use super::{encompass, replicate, states};
 use super::{fit_eval, mean_vaf, mode_name};
@@ -69,6 +70,9 @@ pub(crate) struct Judgement {
     pub replication: Option<Vec<Versus>>,
     /// How each half's refit was compared with the null refit on that half.
     pub replication_basis: Option<Vec<Basis>>,
+    /// The halves refit with a longer past window because a refit ran away, in words
+    /// ([`Halves`]).
+    pub replication_widened: Vec<String>,
     /// The best variant, when it did not replicate and this one did in its place, with what
     /// it explained on the halves.
     pub swapped_from: Option<(usize, Vec<Versus>)>,
@@ -182,46 +186,34 @@ fn cross_validate(
 /// also beat the model's structure refit (on the planted output-offset plant,
 /// diagnose_planted seed 3, a scheduling-noise alternative that explained 100 % of its own
 /// LPV-ARX null's error replicated).
-fn replicate_on_halves(
-    b: &Bench<'_>,
+fn replicate_on_halves<'b>(
+    b: &Bench<'b>,
     js: &mut [Judgement],
     notes: &mut Vec<String>,
-) -> Option<Halves> {
-    let halves = replicate::halves(b.train);
-    let nulls: Option<Vec<Eval>> = halves
-        .iter()
-        .map(|h| fit_eval(b.spec, h, b.val, b.fit))
-        .collect();
-    let Some(nulls) = nulls else {
+) -> Option<Halves<'b>> {
+    let Some(halves) = Halves::new(b.spec, b.train, b.val, b.fit) else {
         notes.push("the null structure cannot be refit on half of the training data: findings are not replicated on independent halves".into());
         return None;
     };
-    let rep = |i: usize| replicate::replicate(&b.scored[i].cand, &halves, &nulls, b.val, b.fit);
     for j in js.iter_mut().filter(|j| j.full_data) {
-        let (mut r, mut bases) = rep(j.index);
-        if !replicate::replicated(&r) {
+        let mut r = halves.replicate(&b.scored[j.index].cand);
+        if !replicate::replicated(&r.versus) {
             let alts =
                 replicate::alternatives(b.scored, j.index, b.tried, b.base_eval, b.larger_eval);
             for i in alts {
-                let (r2, b2) = rep(i);
-                if replicate::replicated(&r2) {
-                    j.swapped_from = Some((j.index, r));
+                let r2 = halves.replicate(&b.scored[i].cand);
+                if replicate::replicated(&r2.versus) {
+                    j.swapped_from = Some((j.index, r.versus));
                     j.index = i;
                     r = r2;
-                    bases = b2;
                     break;
                 }
             }
         }
-        j.replication = Some(r);
-        j.replication_basis = Some(bases);
+        j.take_replication(r);
     }
-    Some((halves, nulls))
+    Some(halves)
 }
-
-/// The two halves of the training data and the null refit on each, evaluated on the
-/// held-out data.
-type Halves = ([Dataset; 2], Vec<Eval>);
 
 impl References {
     /// The model's structure refined by output error, fitted when a rule first needs it.
@@ -255,24 +247,23 @@ struct References {
 fn second_chance(
     b: &Bench<'_>,
     j: &Judgement,
-    (halves, nulls): &Halves,
+    halves: &Halves<'_>,
     refs: &References,
 ) -> Option<Judgement> {
     let why = j.rule_failed(b, false)?;
     let first = j.swapped_from.as_ref().map_or(j.index, |s| s.0);
     let alts = replicate::alternatives(b.scored, first, b.tried, b.base_eval, b.larger_eval);
     for i in alts.into_iter().filter(|&i| i != j.index) {
-        let (r, bases) = replicate::replicate(&b.scored[i].cand, halves, nulls, b.val, b.fit);
-        if !replicate::replicated(&r) {
+        let r = halves.replicate(&b.scored[i].cand);
+        if !replicate::replicated(&r.versus) {
             continue;
         }
         let mut alt = Judgement {
             full_data: true,
-            replication: Some(r),
-            replication_basis: Some(bases),
             set_aside: Some((j.index, why.clone())),
             ..Judgement::new(j.effect, i, j.variants)
         };
+        alt.take_replication(r);
         b.rules_beyond_full_data(&mut alt, false, refs);
         if alt.passed {
             return Some(alt);
@@ -372,6 +363,13 @@ impl Bench<'_> {
 }
 
 impl Judgement {
+    /// Keep the replication on the two halves of the variant judged.
+    fn take_replication(&mut self, r: Replication) {
+        self.replication = Some(r.versus);
+        self.replication_basis = Some(r.bases);
+        self.replication_widened = r.widened;
+    }
+
     /// Variant `index` of `effect` (one of its `variants`), before any rule is tested.
     fn new(effect: Effect, index: usize, variants: usize) -> Judgement {
         Judgement {
@@ -382,6 +380,7 @@ impl Judgement {
             full_data: false,
             replication: None,
             replication_basis: None,
+            replication_widened: Vec::new(),
             swapped_from: None,
             set_aside: None,
             vs_user: None,
@@ -443,10 +442,11 @@ impl Judgement {
             ));
         } else if let Some(r) = &self.replication {
             ev.push(format!(
-                "refit on each half of the training data: explains {} of the held-out error (p = {}){}",
+                "refit on each half of the training data: explains {} of the held-out error (p = {}){}{}",
                 r.iter().map(|x| format!("{:.1} %", 100.0 * x.0)).collect::<Vec<_>>().join(" and "),
                 r.iter().map(|x| format!("{:.1e}", x.1)).collect::<Vec<_>>().join(", "),
-                self.halves_basis()
+                self.halves_basis(),
+                self.replication_widened.iter().map(|w| format!("; {w}")).collect::<String>()
             ));
         }
         if s.basis == Basis::ZeroStartTail {

@@ -31,12 +31,15 @@
 //! 409-614, the record's lowest levels, 2.9-6.2 V, no overflow, the offset refit is far off).
 
 use super::effects::{
-    beats_user, held_out_mse, score, significant, versus, versus_larger, Candidate, Effect, Eval,
-    Scored,
+    beats_user, held_out_mse, score, significant, versus, versus_larger, with_past, Candidate,
+    Effect, Eval, Scored,
 };
+use super::fit_eval;
 use super::memory::{judged, Basis};
+use super::refit::Spec;
 use super::stats::{mean_t, t_sf};
 use crate::data::Dataset;
+use std::cell::OnceCell;
 
 /// When the best variant of an effect does not replicate, at most this many of its other
 /// variants that pass every full-data test of a finding ([`alternatives`]) are replicated in
@@ -124,25 +127,126 @@ pub fn halves(ds: &Dataset) -> [Dataset; 2] {
     [cut(0, n / 2, "first"), cut(n / 2, n, "second")]
 }
 
-/// Refit `cand` on each training half and score it against the null structure refit on the
-/// same half (`nulls`): (explained, p-value) per half, and the comparison each used
-/// ([`super::memory::judged`]: a half's null refit may lean on its estimated start where
-/// the full-data one does too).
-pub fn replicate(
-    cand: &Candidate,
-    halves: &[Dataset; 2],
-    nulls: &[Eval],
-    val: &Dataset,
-    base_fit: &serde_json::Value,
-) -> (Vec<(f64, f64)>, Vec<Basis>) {
-    halves
-        .iter()
-        .zip(nulls)
-        .map(|(h, null)| {
-            let s = score(cand.clone(), h, val, base_fit, Some(null));
-            ((s.explained, s.p_value), s.basis)
+/// The two halves of the training data ([`halves`]) and the model's structure refit on each
+/// and evaluated on the held-out record: what every variant's replication is compared with.
+///
+/// **A half whose refit runs away.** A subspace fit on half the record can put a frozen pole
+/// outside the unit circle where the data dwell, and its free run on the held-out record
+/// then leaves the data's range ([`Eval::runs_away`]): family plant feedthrough 103001, D
+/// estimated at past window 5 on the second half, explains -2.6e6 % of the null's error,
+/// while at past 4 and 6 the same half's refit gives a held-out VAF of 99.2 %. Such a fit
+/// is a failed estimate, not evidence about the structure, so when the variant's or the
+/// null's refit on a half runs away both are refit on that half with the past window one
+/// longer ([`super::effects::with_past`]) and compared there, once; the half stays the
+/// same data, so the two halves stay independent.
+pub struct Halves<'a> {
+    /// The first and second half of the training data.
+    pub sets: [Dataset; 2],
+    /// The null structure refit on each half, evaluated on the held-out record.
+    pub nulls: Vec<Eval>,
+    /// The model's structure.
+    spec: &'a Spec,
+    /// The held-out record.
+    val: &'a Dataset,
+    /// The model's fit settings.
+    fit: &'a serde_json::Value,
+    /// The null structure one past sample longer refit on each half, when a half's refit
+    /// first runs away (None inside: it cannot be refit).
+    wider: [OnceCell<Option<Eval>>; 2],
+}
+
+/// A variant's replication on the two halves ([`Halves::replicate`]).
+pub struct Replication {
+    /// (explained, p-value) per half.
+    pub versus: Vec<(f64, f64)>,
+    /// The comparison each half used ([`super::memory::judged`]: a half's null refit may
+    /// lean on its estimated start where the full-data one does too).
+    pub bases: Vec<Basis>,
+    /// The halves refit with a longer past window because a refit ran away, in words.
+    pub widened: Vec<String>,
+}
+
+impl<'a> Halves<'a> {
+    /// The halves of `train` and the structure `spec` refit on each, scored on `val`; None
+    /// when the structure cannot be refit on a half.
+    pub fn new(
+        spec: &'a Spec,
+        train: &Dataset,
+        val: &'a Dataset,
+        fit: &'a serde_json::Value,
+    ) -> Option<Halves<'a>> {
+        let sets = halves(train);
+        let nulls = sets
+            .iter()
+            .map(|h| fit_eval(spec, h, val, fit))
+            .collect::<Option<Vec<_>>>()?;
+        Some(Halves {
+            sets,
+            nulls,
+            spec,
+            val,
+            fit,
+            wider: [OnceCell::new(), OnceCell::new()],
         })
-        .unzip()
+    }
+
+    /// Refit `cand` on each half and score it against the null structure refit on the same
+    /// half; a half where either refit runs away is scored again with both one past sample
+    /// longer (the type's docs).
+    pub fn replicate(&self, cand: &Candidate) -> Replication {
+        let mode = cand.effect.metric();
+        let mut r = Replication {
+            versus: Vec::with_capacity(2),
+            bases: Vec::with_capacity(2),
+            widened: Vec::new(),
+        };
+        for (i, (h, null)) in self.sets.iter().zip(&self.nulls).enumerate() {
+            let mut s = score(cand.clone(), h, self.val, self.fit, Some(null));
+            let ran_away = |s: &Scored| s.eval.as_ref().is_some_and(|e| e.runs_away(mode));
+            if ran_away(&s) || null.runs_away(mode) {
+                if let Some(w) = self.wider_score(i, cand) {
+                    r.widened.push(format!(
+                        "on the {} half the {} refit ran away from the held-out data at past window {}; both refit there at past window {}",
+                        if i == 0 { "first" } else { "second" },
+                        if ran_away(&s) { "variant's" } else { "null structure's" },
+                        cand.spec.opts.past,
+                        cand.spec.opts.past + 1
+                    ));
+                    s = w;
+                }
+            }
+            r.versus.push((s.explained, s.p_value));
+            r.bases.push(s.basis);
+        }
+        r
+    }
+
+    /// `cand` and the null structure one past sample longer, refit on half `i` and compared
+    /// there; None when either cannot be made or refit.
+    fn wider_score(&self, i: usize, cand: &Candidate) -> Option<Scored> {
+        let h = &self.sets[i];
+        let past = cand.spec.opts.past + 1;
+        let wider = Candidate {
+            spec: with_past(&cand.spec, past, h.len())?,
+            null: match &cand.null {
+                Some(n) => Some(with_past(n, past, h.len())?),
+                None => None,
+            },
+            ..cand.clone()
+        };
+        let null = match &cand.null {
+            Some(_) => None,
+            None => Some(
+                self.wider[i]
+                    .get_or_init(|| {
+                        let spec = with_past(self.spec, self.spec.opts.past + 1, h.len())?;
+                        fit_eval(&spec, h, self.val, self.fit)
+                    })
+                    .as_ref()?,
+            ),
+        };
+        Some(score(wider, h, self.val, self.fit, null))
+    }
 }
 
 /// The replication check: the variant explains part of the held-out error in each half
@@ -321,4 +425,43 @@ pub fn cv_agree(held_explained: f64, folds: &[(f64, f64)]) -> bool {
         .filter(|e| *e > 0.0)
         .count();
     agree + 1 >= k
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::simulate::Mode;
+    use nalgebra::DMatrix;
+
+    /// An evaluation of measured outputs `y` with free-run outputs `yhat` (one output).
+    fn eval(y: &[f64], yhat: &[f64], skip: usize) -> Eval {
+        let col = |v: &[f64]| DMatrix::from_column_slice(v.len(), 1, v);
+        Eval {
+            y: col(y),
+            yhat_free: col(yhat),
+            yhat_pred: col(y),
+            yhat_zero: col(yhat),
+            var_y: vec![1.0],
+            skip,
+        }
+    }
+
+    /// A run that strays an order of magnitude beyond the measured range (about its middle)
+    /// on a scored row, or is not finite, ran away; a poor fit within that bound, a stray
+    /// in the rows the initial state was fitted on, and a constant record's exact fit did not.
+    #[test]
+    fn a_run_away_is_an_order_of_magnitude_beyond_the_data() {
+        // measured range [1, 3]: middle 2, half-width 1
+        let y = [1.0, 3.0, 2.0, 1.5, 2.5];
+        let run = |yhat: &[f64], skip| eval(&y, yhat, skip).runs_away(Mode::FreeRun);
+        assert!(!run(&[2.0, 2.0, -7.9, 11.9, 2.0], 0));
+        assert!(run(&[2.0, 2.0, -8.1, 2.0, 2.0], 0));
+        assert!(run(&[2.0, 2.0, 12.1, 2.0, 2.0], 0));
+        assert!(run(&[2.0, 2.0, f64::NAN, 2.0, 2.0], 0));
+        assert!(!run(&[1e6, 2.0, 2.0, 2.0, 2.0], 1));
+        // the predictor's run is judged on its own
+        assert!(!eval(&y, &[1e6; 5], 0).runs_away(Mode::Predictor));
+        assert!(!eval(&[4.0; 3], &[4.0; 3], 0).runs_away(Mode::FreeRun));
+        assert!(eval(&[4.0; 3], &[f64::INFINITY; 3], 0).runs_away(Mode::FreeRun));
+    }
 }
