@@ -42,7 +42,7 @@ fn a_half_whose_refit_runs_away_is_refit_one_past_sample_longer() {
         .expect("the replication in the evidence");
     println!("{why}");
     assert!(
-        why.contains("on the first half the variant's refit ran away from the held-out data at past window 7; both refit there at past window 8"),
+        why.contains("on the first half the variant's refit ran away from the held-out data, so both were refit there one past sample longer: past window 8 (was 7)"),
         "{why}"
     );
 }

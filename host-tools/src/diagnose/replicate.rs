@@ -138,7 +138,8 @@ pub fn halves(ds: &Dataset) -> [Dataset; 2] {
 /// is a failed estimate, not evidence about the structure, so when the variant's or the
 /// null's refit on a half runs away both are refit on that half with the past window one
 /// longer ([`super::effects::with_past`]) and compared there, once; the half stays the
-/// same data, so the two halves stay independent.
+/// same data, so the two halves stay independent. (A variant with a null structure of its
+/// own, [`Candidate::null`], is refit with that null; only its own run is checked.)
 pub struct Halves<'a> {
     /// The first and second half of the training data.
     pub sets: [Dataset; 2],
@@ -203,14 +204,26 @@ impl<'a> Halves<'a> {
         for (i, (h, null)) in self.sets.iter().zip(&self.nulls).enumerate() {
             let mut s = score(cand.clone(), h, self.val, self.fit, Some(null));
             let ran_away = |s: &Scored| s.eval.as_ref().is_some_and(|e| e.runs_away(mode));
-            if ran_away(&s) || null.runs_away(mode) {
+            // a variant with its own null is compared with that null, refit inside `score`
+            if ran_away(&s) || (cand.null.is_none() && null.runs_away(mode)) {
                 if let Some(w) = self.wider_score(i, cand) {
+                    let past = |sp: &Spec| sp.opts.past;
+                    let null_past = cand.null.as_ref().map_or(past(self.spec), past);
+                    let pasts = if null_past == past(&cand.spec) {
+                        format!("past window {} (was {})", null_past + 1, null_past)
+                    } else {
+                        format!(
+                            "past windows {} and {} (were {} and {})",
+                            past(&cand.spec) + 1,
+                            null_past + 1,
+                            past(&cand.spec),
+                            null_past
+                        )
+                    };
                     r.widened.push(format!(
-                        "on the {} half the {} refit ran away from the held-out data at past window {}; both refit there at past window {}",
+                        "on the {} half the {} refit ran away from the held-out data, so both were refit there one past sample longer: {pasts}",
                         if i == 0 { "first" } else { "second" },
                         if ran_away(&s) { "variant's" } else { "null structure's" },
-                        cand.spec.opts.past,
-                        cand.spec.opts.past + 1
                     ));
                     s = w;
                 }
@@ -229,7 +242,7 @@ impl<'a> Halves<'a> {
         let wider = Candidate {
             spec: with_past(&cand.spec, past, h.len())?,
             null: match &cand.null {
-                Some(n) => Some(with_past(n, past, h.len())?),
+                Some(n) => Some(with_past(n, n.opts.past + 1, h.len())?),
                 None => None,
             },
             ..cand.clone()
