@@ -139,7 +139,8 @@ pub fn halves(ds: &Dataset) -> [Dataset; 2] {
 /// null's refit on a half runs away both are refit on that half with the past window one
 /// longer ([`super::effects::with_past`]) and compared there, once; the half stays the
 /// same data, so the two halves stay independent. (A variant with a null structure of its
-/// own, [`Candidate::null`], is refit with that null; only its own run is checked.)
+/// own, [`Candidate::null`], is refit with that null; only its own run is checked. When a
+/// wider refit fails or diverges, the half keeps its first score.)
 pub struct Halves<'a> {
     /// The first and second half of the training data.
     pub sets: [Dataset; 2],
@@ -206,7 +207,8 @@ impl<'a> Halves<'a> {
             let ran_away = |s: &Scored| s.eval.as_ref().is_some_and(|e| e.runs_away(mode));
             // a variant with its own null is compared with that null, refit inside `score`
             if ran_away(&s) || (cand.null.is_none() && null.runs_away(mode)) {
-                if let Some(w) = self.wider_score(i, cand) {
+                // a wider refit that fails leaves the half as it was scored
+                if let Some(w) = self.wider_score(i, cand).filter(|w| w.error.is_none()) {
                     let past = |sp: &Spec| sp.opts.past;
                     let null_past = cand.null.as_ref().map_or(past(self.spec), past);
                     let pasts = if null_past == past(&cand.spec) {
