@@ -7,7 +7,9 @@
 //! printed lines and tables are the same. `LPVID_FAMILY_VERBOSE=1` prints each plant's
 //! findings and variants; `LPVID_FAMILY_DUMP=DIR` writes each plant's records and the user's
 //! `lpvid pbsid` options (`DIR/EFFECT-SEED.train.csv`, `.val.csv`, `.args`) to trace a miss
-//! through the command line. The figures are in docs/bench-diagnose.md.
+//! through the command line; `LPVID_FAMILY_ORDER=auto` lets the user's fit choose its order
+//! (`--order auto`) instead of being given the plant's (not for `order-too-low`). The figures
+//! are in docs/bench-diagnose.md.
 
 #[path = "../tests/diagnose_support/family.rs"]
 mod family;

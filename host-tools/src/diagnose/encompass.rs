@@ -167,7 +167,8 @@ pub const ENCOMPASSING_TESTS: usize = 2;
 /// both effects; neither: the data cannot tell them apart and parsimony decides. The pair
 /// `order-too-low` and `output-nonlinearity` is judged the same way with its own
 /// comprehensive structure ([`encompass_order`]). When the scheduling pair's comprehensive
-/// structure cannot be fitted the way each finding is, the pair is judged like with like,
+/// structure cannot be fitted the way each finding is, or neither adds by a fit of it that
+/// loses to a finding it nests ([`failed_estimate`]), the pair is judged like with like,
 /// each effect by its refined variant ([`encompass_refined`], from `scored`). None when the
 /// structures cannot be combined or a fit fails.
 pub fn encompass(
@@ -197,7 +198,9 @@ pub fn encompass(
 
 /// [`encompass`] of the two scheduling effects with the comprehensive structure fitted the
 /// way each finding is. None when a structure cannot be combined or fitted (the PBSID fit of
-/// a scheduled output on [1, p, p^2] at past window 7 has too many regressors: h19so).
+/// a scheduled output on [1, p, p^2] at past window 7 has too many regressors: h19so), and
+/// when the verdict would be that neither adds but a comprehensive fit lost to the finding
+/// it nests ([`failed_estimate`]).
 fn encompass_as_fitted(
     simpler: &Scored,
     richer: &Scored,
@@ -223,6 +226,13 @@ fn encompass_as_fitted(
     let richer_adds = versus(&l_s, &l_us);
     let simpler_adds = versus(&l_r, &l_ur);
     let verdict = Encompassed::of(richer_adds, simpler_adds);
+    if verdict == Encompassed::Neither
+        && (failed_estimate(&l_us, &l_s) || failed_estimate(&l_ur, &l_r))
+    {
+        // "neither adds" read from a comprehensive fit that lost to a structure it nests
+        // says nothing of the pair: judge it like with like instead
+        return None;
+    }
     let detail = format!(
         "{} and {}",
         describe_addition(&simpler.cand),
@@ -235,6 +245,20 @@ fn encompass_as_fitted(
         level: ALPHA / ENCOMPASSING_TESTS as f64,
         detail,
     })
+}
+
+/// Whether the comprehensive structure's fit (held-out losses `union`) lost to a structure it
+/// nests (`nested`), at the encompassing test's level ([`significant`] at ALPHA /
+/// [`ENCOMPASSING_TESTS`]): the comprehensive structure can reach the nested one's fit by
+/// setting the added coefficients to 0, so doing significantly worse is a failed estimate
+/// (the PBSID fit of a scheduled output equation on [1, p, p^2], family plant 113002: -254 %
+/// of the p1^2 finding's held-out error), not evidence that the nested finding adds nothing.
+fn failed_estimate(union: &[f64], nested: &[f64]) -> bool {
+    if union.iter().any(|v| !v.is_finite()) {
+        return true;
+    }
+    let (explained, p) = versus(union, nested);
+    significant(explained, p, ENCOMPASSING_TESTS)
 }
 
 /// [`encompass`] of the two scheduling effects judged like with like (issue 14): each effect

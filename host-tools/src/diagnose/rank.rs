@@ -51,8 +51,12 @@ fn rank_by_own_error(findings: &mut [(Finding, usize)], scored: &[Scored]) {
 /// encompassing test ([`encompass::encompass`], for two findings whose structures combine: the
 /// two scheduling effects, and order-too-low with output-nonlinearity)
 /// finds that the first one adds to the simpler one and not the reverse (it stays first),
-/// or that both add (the one with the lower own held-out error first). Its numbers go in the
-/// first finding's evidence in every case.
+/// or that both add (the one with the lower own held-out error first). When neither adds,
+/// the simpler goes first, except for the two scheduling effects, whose structures differ by
+/// a few coefficients in kind rather than number: the lower own held-out error first, as
+/// [`encompass::scheduling_pair_first`] does (family plants 113000 and 113002, p1^2 planted:
+/// the scheduled output equation was named by 18 coefficients against 21). Its numbers go in
+/// the first finding's evidence in every case.
 fn prefer_simpler_first(
     findings: &mut Vec<(Finding, usize)>,
     scored: &[Scored],
@@ -94,6 +98,20 @@ fn prefer_simpler_first(
                 if better_is_simpler { rn } else { sn }
             ),
         ),
+        // the two scheduling effects: the comprehensive structure stands in for the
+        // coefficient count, and a tie is decided as encompass::scheduling_pair_first decides
+        // it (the lower held-out error first)
+        encompass::Encompassed::Neither
+            if encompass::encompassable(s.cand.effect) && encompass::encompassable(r.cand.effect) =>
+        {
+            (
+                if better_is_simpler { k } else { 0 },
+                format!(
+                    "{numbers}: neither adds to the other, the data do not tell them apart; {} first (the lower held-out error; for the two scheduling effects the encompassing test, not the coefficient count, decides)",
+                    if better_is_simpler { sn } else { rn }
+                ),
+            )
+        }
         encompass::Encompassed::Neither => (
             k,
             format!("{numbers}: neither adds to the other, the data do not tell them apart; {why}"),

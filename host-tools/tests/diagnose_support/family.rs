@@ -370,6 +370,13 @@ pub fn run_one_shaped(
             c.truncate(v);
         }
     }
+    // LPVID_FAMILY_ORDER=auto: the user leaves the order to `--order auto` (a user who does
+    // not know it), instead of the plant's order; order-too-low keeps its order too small
+    if std::env::var("LPVID_FAMILY_ORDER").as_deref() == Ok("auto") && effect != "order-too-low" {
+        if let Some(i) = case.pbsid_args.iter().position(|a| a == "--order") {
+            case.pbsid_args[i + 1] = "auto".into();
+        }
+    }
     // LPVID_FAMILY_DUMP=DIR: the case's records and the user's `lpvid pbsid` options as
     // files, so a miss can be traced through the command line (`lpvid pbsid`, `diagnose`)
     if let Ok(dir) = std::env::var("LPVID_FAMILY_DUMP") {
