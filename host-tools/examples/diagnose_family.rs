@@ -8,7 +8,9 @@
 //! findings and variants; `LPVID_FAMILY_DUMP=DIR` writes each plant's records and the user's
 //! `lpvid pbsid` options (`DIR/EFFECT-SEED.train.csv`, `.val.csv`, `.args`) to trace a miss
 //! through the command line; `LPVID_FAMILY_ORDER=auto` lets the user's fit choose its order
-//! (`--order auto`) instead of being given the plant's (not for `order-too-low`). The figures
+//! (`--order auto`) instead of being given the plant's (not for `order-too-low`);
+//! `LPVID_FAMILY_SCHEDULING=operating-points` moves a scheduled plant's p1 between held levels
+//! (`plants::Profile::OperatingPoints`) instead of the drawn signals. The figures
 //! are in docs/bench-diagnose.md.
 
 #[path = "../tests/diagnose_support/family.rs"]

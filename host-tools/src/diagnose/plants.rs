@@ -225,6 +225,19 @@ fn past_window(slowest: f64, order: usize, scheduled: bool, order_too_low: bool)
     }
 }
 
+/// How a scheduled family plant's scheduling signal p1 moves.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum Profile {
+    /// The family's own draws: a slow sinusoid plus low-pass noise, or B6-like sin(0.1 k)
+    /// plus noise.
+    #[default]
+    Drawn,
+    /// Operating points: levels in [-0.9, 0.9] held 150-400 samples, joined by ramps of 30
+    /// samples (a rotor moved between set speeds). Drawn from its own generator, so every
+    /// other signal of the plant is the one [`Profile::Drawn`] gives.
+    OperatingPoints,
+}
+
 /// Draw the case of `effect` with `seed`: training and validation records of `n` samples each.
 pub fn family_case(effect: &str, seed: u64, n: usize) -> Result<FamilyCase, FamilyError> {
     family_case_shaped(effect, seed, n, Shape::SISO)
@@ -244,16 +257,47 @@ pub fn family_case_shaped(
     n: usize,
     shape: Shape,
 ) -> Result<FamilyCase, FamilyError> {
+    family_case_with(effect, seed, n, shape, Profile::Drawn)
+}
+
+/// [`family_case_shaped`] with the scheduling signal of a scheduled plant moving as
+/// `profile` says.
+pub fn family_case_with(
+    effect: &str,
+    seed: u64,
+    n: usize,
+    shape: Shape,
+    profile: Profile,
+) -> Result<FamilyCase, FamilyError> {
     if !FAMILY_EFFECTS.contains(&effect) {
         return Err(FamilyError::Unknown(effect.to_string()));
     }
     let mut rng = StdRng::seed_from_u64(seed.wrapping_mul(0x9E37_79B9_7F4A_7C15) ^ 0x5eed);
     for _ in 0..20 {
-        if let Some(c) = draw(effect, seed, n, shape, &mut rng) {
+        if let Some(c) = draw(effect, seed, n, shape, profile, &mut rng) {
             return Ok(c);
         }
     }
     Err(FamilyError::Unstable(effect.to_string(), seed))
+}
+
+/// The scheduling signal of [`Profile::OperatingPoints`]: levels uniform in [-0.9, 0.9],
+/// each held 150-400 samples, joined by linear ramps of 30 samples; its own generator (from
+/// `seed`).
+fn operating_points(seed: u64, total: usize) -> Vec<f64> {
+    const RAMP: usize = 30;
+    let mut rng = StdRng::seed_from_u64(seed ^ 0x0be7_a7e5_9017);
+    let mut p = Vec::with_capacity(total);
+    let mut level: f64 = rng.gen_range(-0.9..0.9);
+    while p.len() < total {
+        let hold = rng.gen_range(150..=400usize);
+        p.extend(std::iter::repeat(level).take(hold));
+        let next: f64 = rng.gen_range(-0.9..0.9);
+        p.extend((1..=RAMP).map(|i| level + (next - level) * i as f64 / RAMP as f64));
+        level = next;
+    }
+    p.truncate(total);
+    p
 }
 
 /// One input signal of `kind` (0 white, 1 low-pass, 2 random binary), unit spread.
@@ -291,7 +335,14 @@ fn input_signal(rng: &mut StdRng, kind: u8, total: usize) -> Vec<f64> {
     }
 }
 
-fn draw(effect: &str, seed: u64, n: usize, shape: Shape, rng: &mut StdRng) -> Option<FamilyCase> {
+fn draw(
+    effect: &str,
+    seed: u64,
+    n: usize,
+    shape: Shape,
+    profile: Profile,
+    rng: &mut StdRng,
+) -> Option<FamilyCase> {
     let total = 2 * n;
     let (nu, ny) = (shape.inputs.max(1), shape.outputs.max(1));
     // a MIMO plant makes its extra draws only where a SISO plant makes none (same records)
@@ -499,7 +550,7 @@ fn draw(effect: &str, seed: u64, n: usize, shape: Shape, rng: &mut StdRng) -> Op
     words.push(
         ["white input", "low-pass input", "random binary input"][input_kind as usize].to_string(),
     );
-    let p: Vec<f64> = if !scheduled {
+    let mut p: Vec<f64> = if !scheduled {
         vec![0.0; total]
     } else if p_kind == 1 {
         let d = gauss(rng, total);
@@ -525,6 +576,11 @@ fn draw(effect: &str, seed: u64, n: usize, shape: Shape, rng: &mut StdRng) -> Op
             })
             .collect()
     };
+    if scheduled && profile == Profile::OperatingPoints {
+        // the drawn signal's draws were made above, so every other signal stays the same
+        p = operating_points(seed, total);
+        words.push("p1 moved between operating points".to_string());
+    }
     let w: Vec<f64> = {
         let zz = gauss(rng, total);
         let mut lp = 0.0;

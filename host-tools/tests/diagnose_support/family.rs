@@ -9,7 +9,9 @@ use std::collections::BTreeMap;
 use std::fmt::Write as _;
 
 use lpvid_host::diagnose::effects::{significant, versus, Eval};
-use lpvid_host::diagnose::plants::{family_case_shaped, FamilyCase, Shape};
+use lpvid_host::diagnose::plants::{
+    family_case_shaped, family_case_with, FamilyCase, Profile, Shape,
+};
 use lpvid_host::diagnose::refit::{fit_spec, Noise, Spec};
 use lpvid_host::diagnose::{diagnose, Options};
 use lpvid_host::model::{Factor, FactorFn, ModelFile};
@@ -364,7 +366,13 @@ pub fn run_one_shaped(
     val_len: Option<usize>,
     shape: Shape,
 ) -> FamilyRun {
-    let mut case = family_case_shaped(effect, seed, n, shape).unwrap();
+    // LPVID_FAMILY_SCHEDULING=operating-points: a scheduled plant's p1 moves between held
+    // levels (plants::Profile::OperatingPoints) instead of the family's drawn signals
+    let profile = match std::env::var("LPVID_FAMILY_SCHEDULING").as_deref() {
+        Ok("operating-points") => Profile::OperatingPoints,
+        _ => Profile::Drawn,
+    };
+    let mut case = family_case_with(effect, seed, n, shape, profile).unwrap();
     if let Some(v) = val_len {
         for c in case.val.cols.iter_mut() {
             c.truncate(v);
