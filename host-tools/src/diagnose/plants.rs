@@ -291,7 +291,7 @@ fn operating_points(seed: u64, total: usize) -> Vec<f64> {
     let mut level: f64 = rng.gen_range(-0.9..0.9);
     while p.len() < total {
         let hold = rng.gen_range(150..=400usize);
-        p.extend(std::iter::repeat(level).take(hold));
+        p.extend(std::iter::repeat_n(level, hold));
         let next: f64 = rng.gen_range(-0.9..0.9);
         p.extend((1..=RAMP).map(|i| level + (next - level) * i as f64 / RAMP as f64));
         level = next;
