@@ -867,6 +867,48 @@ mod tests {
     use super::*;
 
     #[test]
+    fn operating_points_hold_levels_and_leave_every_other_signal_as_drawn() {
+        for seed in 0..4 {
+            let e = "scheduling-nonlinearity";
+            let drawn = family_case(e, seed, 1500).unwrap();
+            let op =
+                family_case_with(e, seed, 1500, Shape::SISO, Profile::OperatingPoints).unwrap();
+            for name in ["u1", "y1", "p1"] {
+                assert!(op.train.column(name).is_some(), "{name}");
+            }
+            // the inputs are the drawn family's; p1 is not
+            assert_eq!(drawn.train.column("u1"), op.train.column("u1"));
+            assert_ne!(drawn.train.column("p1"), op.train.column("p1"));
+            // levels in [-0.9, 0.9], held 150-400 samples (the last one may be cut by the
+            // record's end; a ramp's last sample may equal the next level)
+            let p: Vec<f64> = op
+                .train
+                .column("p1")
+                .unwrap()
+                .iter()
+                .chain(op.val.column("p1").unwrap())
+                .copied()
+                .collect();
+            assert!(p.iter().all(|v| (-0.9..=0.9).contains(v)));
+            let mut runs = vec![];
+            let mut len = 1;
+            for k in 1..p.len() {
+                if p[k] == p[k - 1] {
+                    len += 1;
+                } else {
+                    if len > 1 {
+                        runs.push(len);
+                    }
+                    len = 1;
+                }
+            }
+            assert!(runs.len() >= 5, "seed {seed}: {runs:?}");
+            let whole = &runs[..runs.len() - 1];
+            assert!(whole.iter().all(|&r| (150..=401).contains(&r)), "{runs:?}");
+        }
+    }
+
+    #[test]
     fn every_effect_draws_finite_records() {
         for e in FAMILY_EFFECTS {
             for seed in 0..3 {
