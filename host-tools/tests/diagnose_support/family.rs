@@ -367,9 +367,11 @@ pub fn run_one_shaped(
     shape: Shape,
 ) -> FamilyRun {
     // LPVID_FAMILY_SCHEDULING=operating-points: a scheduled plant's p1 moves between held
-    // levels (plants::Profile::OperatingPoints) instead of the family's drawn signals
+    // levels (plants::Profile::OperatingPoints) instead of the family's drawn signals;
+    // =two-signals: a second scheduling signal p2 (plants::Profile::TwoSignals)
     let profile = match std::env::var("LPVID_FAMILY_SCHEDULING").as_deref() {
         Ok("operating-points") => Profile::OperatingPoints,
+        Ok("two-signals") => Profile::TwoSignals,
         _ => Profile::Drawn,
     };
     let mut case = family_case_with(effect, seed, n, shape, profile).unwrap();
