@@ -10,8 +10,10 @@
 //! through the command line; `LPVID_FAMILY_ORDER=auto` lets the user's fit choose its order
 //! (`--order auto`) instead of being given the plant's (not for `order-too-low`);
 //! `LPVID_FAMILY_SCHEDULING=operating-points` moves a scheduled plant's p1 between held levels
-//! (`plants::Profile::OperatingPoints`) instead of the drawn signals. The figures
-//! are in docs/bench-diagnose.md.
+//! (`plants::Profile::OperatingPoints`) instead of the drawn signals, and
+//! `LPVID_FAMILY_SCHEDULING=two-signals` gives a scheduled plant a second scheduling signal p2
+//! (`plants::Profile::TwoSignals`; the planted effects stay on p1). The figures are in
+//! docs/bench-diagnose.md.
 
 #[path = "../tests/diagnose_support/family.rs"]
 mod family;

@@ -236,6 +236,12 @@ pub enum Profile {
     /// samples (a rotor moved between set speeds). Drawn from its own generator, so every
     /// other signal of the plant is the one [`Profile::Drawn`] gives.
     OperatingPoints,
+    /// A second scheduling signal p2 beside the drawn p1: A(p) = A0 + p1 A1 + p2 A2, B(p) =
+    /// B0 + p1 B1 + p2 B2, p2 a slow sinusoid plus low-pass noise; every planted effect stays
+    /// on p1. p2 and its matrices come from their own generator, so every other signal of
+    /// the plant is the one [`Profile::Drawn`] gives (the user's past window and the plant's
+    /// stability bound then also span p2).
+    TwoSignals,
 }
 
 /// Draw the case of `effect` with `seed`: training and validation records of `n` samples each.
@@ -298,6 +304,51 @@ fn operating_points(seed: u64, total: usize) -> Vec<f64> {
     }
     p.truncate(total);
     p
+}
+
+/// The second scheduling signal of [`Profile::TwoSignals`] and its matrices A2 (scaled so
+/// that A0 + p1 A1 + p2 A2 stays below radius 0.95 on a grid of [-1, 1]^2; None when halving
+/// it ten times does not) and B2; its own generator (from `seed`).
+fn second_signal(
+    seed: u64,
+    total: usize,
+    a0: &DMatrix<f64>,
+    a1: &DMatrix<f64>,
+    nu: usize,
+) -> Option<(Vec<f64>, DMatrix<f64>, DMatrix<f64>)> {
+    let mut rng = StdRng::seed_from_u64(seed ^ 0x5ec0_4d51_9a15);
+    let order = a0.nrows();
+    let mut a2 = randn(&mut rng, order, order) * 0.25;
+    let b2 = randn(&mut rng, order, nu) * 0.5;
+    let grid = |i: usize| -1.0 + 0.2 * i as f64;
+    let mut ok = false;
+    for _ in 0..10 {
+        ok =
+            (0..=10).all(|i| (0..=10).all(|j| radius(&(a0 + a1 * grid(i) + &a2 * grid(j))) < 0.95));
+        if ok {
+            break;
+        }
+        a2 *= 0.5;
+    }
+    if !ok {
+        return None;
+    }
+    let ph: f64 = rng.gen_range(0.0..2.0 * PI);
+    let per = rng.gen_range(150.0..500.0);
+    let zz = gauss(&mut rng, total);
+    let mut lp = 0.0;
+    let f: Vec<f64> = zz
+        .iter()
+        .map(|v| {
+            lp = 0.98 * lp + 0.02 * v;
+            lp
+        })
+        .collect();
+    let sf = std_of(&f).max(1e-12);
+    let p2 = (0..total)
+        .map(|k| (0.7 * (2.0 * PI * k as f64 / per + ph).sin() + 0.25 * f[k] / sf).clamp(-1.0, 1.0))
+        .collect();
+    Some((p2, a2, b2))
 }
 
 /// One input signal of `kind` (0 white, 1 low-pass, 2 random binary), unit spread.
@@ -581,6 +632,16 @@ fn draw(
         p = operating_points(seed, total);
         words.push("p1 moved between operating points".to_string());
     }
+    // Profile::TwoSignals: p2 with A2, B2 (a0 and a1 as drawn above)
+    let second = if scheduled && profile == Profile::TwoSignals {
+        // the plant's own states (order-too-low's added mode is not scheduled)
+        let own = |m: &DMatrix<f64>| m.view((0, 0), (order, order)).into_owned();
+        let s2 = second_signal(seed, total, &own(&a[0]), &own(&a[1]), nu)?;
+        words.push("affine in p2 as well".to_string());
+        Some(s2)
+    } else {
+        None
+    };
     let w: Vec<f64> = {
         let zz = gauss(rng, total);
         let mut lp = 0.0;
@@ -647,6 +708,14 @@ fn draw(
                 y[j][k] = yk[j] + e[j][k];
             }
             let mut xn = poly(&a, pk) * &x + poly(&b, pk) * &v;
+            if let Some((p2, a2, b2)) = &second {
+                let nxo = a2.nrows();
+                let mut d2 = DVector::zeros(nx);
+                let x2 = x.rows(0, nxo).into_owned();
+                d2.rows_mut(0, nxo)
+                    .copy_from(&((a2 * &x2 + b2 * &v) * p2[k]));
+                xn += d2;
+            }
             if let Some(bw) = &bw {
                 xn += bw * w[k];
             }
@@ -780,10 +849,21 @@ fn draw(
                 (l.min(*v), h.max(*v))
             });
         // the user's `order` states (order-too-low: without the mode the user does not know)
+        let p2_range = second.as_ref().map(|(p2, _, _)| {
+            p2.iter()
+                .fold((f64::INFINITY, f64::NEG_INFINITY), |(l, h), v| {
+                    (l.min(*v), h.max(*v))
+                })
+        });
         let frozen = (0..=10)
-            .map(|i| {
+            .flat_map(|i| (0..=if second.is_some() { 10 } else { 0 }).map(move |j| (i, j)))
+            .map(|(i, j)| {
                 let ap = poly(&a, lo + (hi - lo) * i as f64 / 10.0);
-                radius(&ap.view((0, 0), (order, order)).into_owned())
+                let mut ao = ap.view((0, 0), (order, order)).into_owned();
+                if let (Some((_, a2, _)), Some((l2, h2))) = (&second, p2_range) {
+                    ao += a2 * (l2 + (h2 - l2) * j as f64 / 10.0);
+                }
+                radius(&ao)
             })
             .fold(0.0, f64::max);
         slowest = slowest.max(frozen);
@@ -821,6 +901,10 @@ fn draw(
                     })
                     .collect(),
             );
+            if let Some((p2, _, _)) = &second {
+                names.push("p2".into());
+                cols.push(p2[lo..hi].to_vec());
+            }
         }
         if bw.is_some() {
             names.push("w".into());
@@ -905,6 +989,37 @@ mod tests {
             assert!(runs.len() >= 5, "seed {seed}: {runs:?}");
             let whole = &runs[..runs.len() - 1];
             assert!(whole.iter().all(|&r| (150..=401).contains(&r)), "{runs:?}");
+        }
+    }
+
+    #[test]
+    fn a_second_scheduling_signal_moves_the_plant_and_leaves_the_drawn_signals() {
+        for seed in 0..4 {
+            for e in ["clean", "scheduling-noise", "order-too-low"] {
+                let drawn = family_case(e, seed, 1500).unwrap();
+                let two =
+                    family_case_with(e, seed, 1500, Shape::SISO, Profile::TwoSignals).unwrap();
+                if drawn.train.column("p1").is_none() {
+                    // an unscheduled plant gets no p2
+                    assert!(two.train.column("p2").is_none());
+                    assert_eq!(drawn.train.cols, two.train.cols);
+                    continue;
+                }
+                assert!(
+                    two.description.contains("affine in p2"),
+                    "{}",
+                    two.description
+                );
+                for name in ["u1", "p1"] {
+                    assert_eq!(drawn.train.column(name), two.train.column(name), "{name}");
+                }
+                let p2 = two.train.column("p2").unwrap();
+                assert!(p2.iter().all(|v| (-1.0..=1.0).contains(v)));
+                let (_, s2) = crate::linalg::mean_std(p2.iter().copied());
+                assert!(s2 > 0.2, "{s2}");
+                // p2 moves the plant: its outputs differ from the drawn plant's
+                assert_ne!(drawn.train.column("y1"), two.train.column("y1"));
+            }
         }
     }
 

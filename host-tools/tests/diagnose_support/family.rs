@@ -8,7 +8,7 @@
 use std::collections::BTreeMap;
 use std::fmt::Write as _;
 
-use lpvid_host::diagnose::effects::{significant, versus, Eval};
+use lpvid_host::diagnose::effects::{refined_null, significant, versus, Eval};
 use lpvid_host::diagnose::plants::{
     family_case_shaped, family_case_with, FamilyCase, Profile, Shape,
 };
@@ -216,8 +216,8 @@ fn oracle_spec(
 pub fn oracle(case: &FamilyCase, model: &ModelFile, mode: Mode) -> Option<Oracle> {
     let mut notes = Vec::new();
     let user = Spec::from_model(model, &mut notes).ok()?;
-    let (detail, sp, train) = oracle_spec(case, &user)?;
-    let failed = |why: String| Oracle {
+    let (mut detail, sp, train) = oracle_spec(case, &user)?;
+    let failed = |detail: &str, why: String| Oracle {
         detail: format!("{detail}: {why}"),
         ratio: f64::NAN,
         explained: f64::NEG_INFINITY,
@@ -226,14 +226,30 @@ pub fn oracle(case: &FamilyCase, model: &ModelFile, mode: Mode) -> Option<Oracle
     };
     let fitted = match fit_spec(&sp, &train, &model.fit) {
         Ok(f) => f,
-        Err(e) => return Some(failed(e.to_string())),
+        // a scheduled output equation whose PBSID regression is too long (two scheduling
+        // signals at past 7: 19677 regressors) takes the catalogue's other route, refined
+        // from the model's structure refined
+        Err(e) if sp.scheduled_output => {
+            let nested = Spec {
+                nested_in: Some(Box::new(refined_null(&user))),
+                ..sp.clone()
+            };
+            match fit_spec(&nested, &train, &model.fit) {
+                Ok(f) => {
+                    detail.push_str(", refined from the model's own structure refined");
+                    f
+                }
+                Err(e2) => return Some(failed(&detail, format!("{e}; refined: {e2}"))),
+            }
+        }
+        Err(e) => return Some(failed(&detail, e.to_string())),
     };
     let (e0, e1) = match (
         Eval::new(model, &case.val),
         Eval::new(&fitted.model, &case.val),
     ) {
         (Ok(a), Ok(b)) => (a, b),
-        (Err(e), _) | (_, Err(e)) => return Some(failed(e.to_string())),
+        (Err(e), _) | (_, Err(e)) => return Some(failed(&detail, e.to_string())),
     };
     let (explained, p_value) = versus(&e0.loss(mode), &e1.loss(mode));
     let ratio = mse(model, &case.val, mode) / mse(&fitted.model, &case.val, mode).max(1e-300);
@@ -367,11 +383,26 @@ pub fn run_one_shaped(
     shape: Shape,
 ) -> FamilyRun {
     // LPVID_FAMILY_SCHEDULING=operating-points: a scheduled plant's p1 moves between held
-    // levels (plants::Profile::OperatingPoints) instead of the family's drawn signals
+    // levels (plants::Profile::OperatingPoints) instead of the family's drawn signals;
+    // =two-signals: a second scheduling signal p2 (plants::Profile::TwoSignals)
     let profile = match std::env::var("LPVID_FAMILY_SCHEDULING").as_deref() {
         Ok("operating-points") => Profile::OperatingPoints,
+        Ok("two-signals") => Profile::TwoSignals,
         _ => Profile::Drawn,
     };
+    run_one_profiled(effect, seed, n, val_len, shape, profile)
+}
+
+/// [`run_one_shaped`] with the scheduling signals of a scheduled plant drawn as `profile`
+/// says (the environment is not read).
+pub fn run_one_profiled(
+    effect: &str,
+    seed: u64,
+    n: usize,
+    val_len: Option<usize>,
+    shape: Shape,
+    profile: Profile,
+) -> FamilyRun {
     let mut case = family_case_with(effect, seed, n, shape, profile).unwrap();
     if let Some(v) = val_len {
         for c in case.val.cols.iter_mut() {
