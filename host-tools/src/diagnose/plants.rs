@@ -306,6 +306,26 @@ fn operating_points(seed: u64, total: usize) -> Vec<f64> {
     p
 }
 
+/// A slowly wandering scheduling signal: 0.7 sin(2 pi k / period + phase), the period drawn
+/// from `period`, plus 0.25 times a unit-spread low-pass noise (pole 0.98), clamped to [-1, 1].
+fn slow_wander(rng: &mut StdRng, total: usize, period: std::ops::Range<f64>) -> Vec<f64> {
+    let ph: f64 = rng.gen_range(0.0..2.0 * PI);
+    let per = rng.gen_range(period);
+    let zz = gauss(rng, total);
+    let mut lp = 0.0;
+    let f: Vec<f64> = zz
+        .iter()
+        .map(|v| {
+            lp = 0.98 * lp + 0.02 * v;
+            lp
+        })
+        .collect();
+    let sf = std_of(&f).max(1e-12);
+    (0..total)
+        .map(|k| (0.7 * (2.0 * PI * k as f64 / per + ph).sin() + 0.25 * f[k] / sf).clamp(-1.0, 1.0))
+        .collect()
+}
+
 /// The second scheduling signal of [`Profile::TwoSignals`] and its matrices A2 (scaled so
 /// that A0 + p1 A1 + p2 A2 stays below radius 0.95 on a grid of [-1, 1]^2; None when halving
 /// it ten times does not) and B2; its own generator (from `seed`).
@@ -333,21 +353,7 @@ fn second_signal(
     if !ok {
         return None;
     }
-    let ph: f64 = rng.gen_range(0.0..2.0 * PI);
-    let per = rng.gen_range(150.0..500.0);
-    let zz = gauss(&mut rng, total);
-    let mut lp = 0.0;
-    let f: Vec<f64> = zz
-        .iter()
-        .map(|v| {
-            lp = 0.98 * lp + 0.02 * v;
-            lp
-        })
-        .collect();
-    let sf = std_of(&f).max(1e-12);
-    let p2 = (0..total)
-        .map(|k| (0.7 * (2.0 * PI * k as f64 / per + ph).sin() + 0.25 * f[k] / sf).clamp(-1.0, 1.0))
-        .collect();
+    let p2 = slow_wander(&mut rng, total, 150.0..500.0);
     Some((p2, a2, b2))
 }
 
@@ -609,23 +615,7 @@ fn draw(
             .map(|k| (0.8 * (0.1 * k as f64).sin() + 0.15 * d[k]).clamp(-1.0, 1.0))
             .collect()
     } else {
-        let ph: f64 = rng.gen_range(0.0..2.0 * PI);
-        let per = rng.gen_range(100.0..400.0);
-        let zz = gauss(rng, total);
-        let mut lp = 0.0;
-        let f: Vec<f64> = zz
-            .iter()
-            .map(|v| {
-                lp = 0.98 * lp + 0.02 * v;
-                lp
-            })
-            .collect();
-        let sf = std_of(&f).max(1e-12);
-        (0..total)
-            .map(|k| {
-                (0.7 * (2.0 * PI * k as f64 / per + ph).sin() + 0.25 * f[k] / sf).clamp(-1.0, 1.0)
-            })
-            .collect()
+        slow_wander(rng, total, 100.0..400.0)
     };
     if scheduled && profile == Profile::OperatingPoints {
         // the drawn signal's draws were made above, so every other signal stays the same
