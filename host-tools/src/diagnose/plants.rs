@@ -306,6 +306,21 @@ fn operating_points(seed: u64, total: usize) -> Vec<f64> {
     p
 }
 
+/// `m` in the top-left corner of a `rows` x `cols` zero matrix.
+fn grow(m: &DMatrix<f64>, rows: usize, cols: usize) -> DMatrix<f64> {
+    let mut g = DMatrix::zeros(rows, cols);
+    g.view_mut((0, 0), (m.nrows(), m.ncols())).copy_from(m);
+    g
+}
+
+/// Smallest and largest value of `x`.
+fn extent(x: &[f64]) -> (f64, f64) {
+    x.iter()
+        .fold((f64::INFINITY, f64::NEG_INFINITY), |(l, h), v| {
+            (l.min(*v), h.max(*v))
+        })
+}
+
 /// A slowly wandering scheduling signal: 0.7 sin(2 pi k / period + phase), the period drawn
 /// from `period`, plus 0.25 times a unit-spread low-pass noise (pole 0.98), clamped to [-1, 1].
 fn slow_wander(rng: &mut StdRng, total: usize, period: std::ops::Range<f64>) -> Vec<f64> {
@@ -550,11 +565,6 @@ fn draw(
             aa[(order, order + 1)] = r * th.sin();
             aa[(order + 1, order)] = -r * th.sin();
             aa[(order + 1, order + 1)] = r * th.cos();
-            let grow = |m: &DMatrix<f64>, rows: usize, cols: usize| {
-                let mut g = DMatrix::zeros(rows, cols);
-                g.view_mut((0, 0), (m.nrows(), m.ncols())).copy_from(m);
-                g
-            };
             let mut na = vec![aa];
             for ai in &a[1..] {
                 na.push(grow(ai, order + 2, order + 2));
@@ -622,13 +632,14 @@ fn draw(
         p = operating_points(seed, total);
         words.push("p1 moved between operating points".to_string());
     }
-    // Profile::TwoSignals: p2 with A2, B2 (a0 and a1 as drawn above)
+    // Profile::TwoSignals: p2 with A2, B2 (a0 and a1 as drawn above), zero on the states the
+    // effect added
     let second = if scheduled && profile == Profile::TwoSignals {
         // the plant's own states (order-too-low's added mode is not scheduled)
         let own = |m: &DMatrix<f64>| m.view((0, 0), (order, order)).into_owned();
-        let s2 = second_signal(seed, total, &own(&a[0]), &own(&a[1]), nu)?;
+        let (p2, a2, b2) = second_signal(seed, total, &own(&a[0]), &own(&a[1]), nu)?;
         words.push("affine in p2 as well".to_string());
-        Some(s2)
+        Some((p2, grow(&a2, nx, nx), grow(&b2, nx, nu)))
     } else {
         None
     };
@@ -699,12 +710,7 @@ fn draw(
             }
             let mut xn = poly(&a, pk) * &x + poly(&b, pk) * &v;
             if let Some((p2, a2, b2)) = &second {
-                let nxo = a2.nrows();
-                let mut d2 = DVector::zeros(nx);
-                let x2 = x.rows(0, nxo).into_owned();
-                d2.rows_mut(0, nxo)
-                    .copy_from(&((a2 * &x2 + b2 * &v) * p2[k]));
-                xn += d2;
+                xn += (a2 * &x + b2 * &v) * p2[k];
             }
             if let Some(bw) = &bw {
                 xn += bw * w[k];
@@ -833,25 +839,16 @@ fn draw(
     if scheduled {
         // the slowest frozen pole over the drawn scheduling range (a careful user knows the
         // range of p1; its ends and 9 points between, the frozen A of every basis term)
-        let (lo, hi) = p
-            .iter()
-            .fold((f64::INFINITY, f64::NEG_INFINITY), |(l, h), v| {
-                (l.min(*v), h.max(*v))
-            });
+        let (lo, hi) = extent(&p);
         // the user's `order` states (order-too-low: without the mode the user does not know)
-        let p2_range = second.as_ref().map(|(p2, _, _)| {
-            p2.iter()
-                .fold((f64::INFINITY, f64::NEG_INFINITY), |(l, h), v| {
-                    (l.min(*v), h.max(*v))
-                })
-        });
+        let p2_range = second.as_ref().map(|(p2, _, _)| extent(p2));
         let frozen = (0..=10)
             .flat_map(|i| (0..=if second.is_some() { 10 } else { 0 }).map(move |j| (i, j)))
             .map(|(i, j)| {
                 let ap = poly(&a, lo + (hi - lo) * i as f64 / 10.0);
                 let mut ao = ap.view((0, 0), (order, order)).into_owned();
                 if let (Some((_, a2, _)), Some((l2, h2))) = (&second, p2_range) {
-                    ao += a2 * (l2 + (h2 - l2) * j as f64 / 10.0);
+                    ao += a2.view((0, 0), (order, order)) * (l2 + (h2 - l2) * j as f64 / 10.0);
                 }
                 radius(&ao)
             })

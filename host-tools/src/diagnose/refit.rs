@@ -92,9 +92,9 @@ pub struct Spec {
     /// Fit by [`crate::pipeline::fit_map`] with its output-error refinement even without
     /// own-output signals: the null structure of an `output-nonlinearity` candidate, made the
     /// way the candidate is, so the refinement's own gain is not credited to the feedback.
-    /// Like every fit of [`super::output::fit`] it is refined from two starts (the PBSID
-    /// estimates at the past window and two samples longer), a clearly lower training error
-    /// kept ([`super::output::another_minimum`]).
+    /// Without own-output signals it is refined from two starts in [`super::output::fit`] (the
+    /// PBSID estimates at the past window and two samples longer), a clearly lower training
+    /// error kept ([`super::output::another_minimum`]).
     pub refined: bool,
     /// A refined structure nested in this one ([`fit_nested`]): the refined fit of this
     /// structure (its null), with the coefficients this spec adds (C^(i), D^(i) of a
