@@ -11,27 +11,38 @@
 
 mod diagnose_support;
 
-use diagnose_support::family::{diagnose_one, run_one};
+use diagnose_support::family::{blocked_finding, diagnose_one, number_after, run_one};
 use lpvid_host::diagnose::plants::family_case;
 
-/// scheduling-noise plants 41001 (order 3, affine in p1, a slowly varying p1) and 9002 (order
-/// 1, random binary input): the oracle (the user's structure refit on the noise-free p1)
-/// reaches 1.39x and 6.80x of the held-out error. Nothing was named on either before the
-/// eleventh session (the BC-IV variants, LPV-ARX models, explained little of a state-space
-/// plant); on 41001 the low-pass scheduling signal is named (1.22x), on 9002 the BC-IV model
-/// (4.80x).
+/// scheduling-noise plant 9002 (order 1, random binary input): the oracle (the user's
+/// structure refit on the noise-free p1) reaches 6.80x of the held-out error. Nothing was named
+/// before the eleventh session; the BC-IV model (LPV-ARX) is named now (4.80x).
 #[test]
 fn a_noisy_scheduling_sensor_is_named_on_a_state_space_plant() {
-    for (seed, at_least) in [(41001, 1.15), (9002, 3.0)] {
-        let run = run_one("scheduling-noise", seed, 1500);
-        println!("{seed}: {} {:.3} {:?}", run.named, run.ratio, run.oracle);
-        assert_eq!(run.named, "scheduling-noise", "{seed}");
-        assert!(run.ratio >= at_least, "{seed}: {}", run.ratio);
-    }
+    let run = run_one("scheduling-noise", 9002, 1500);
+    println!("9002: {} {:.3} {:?}", run.named, run.ratio, run.oracle);
+    assert_eq!(run.named, "scheduling-noise");
+    assert!(run.ratio >= 3.0, "{}", run.ratio);
+}
+
+/// scheduling-noise plant 41001 (order 3, affine in p1, a slowly varying p1; the oracle 1.39x
+/// of the subspace refit's held-out error): the low-pass scheduling signal beside p1
+/// (`catalogue::Catalogue::smoothed_scheduling`) explains 21.8 % of the refit's error,
+/// replicated, and was named (1.22x) until the twentieth session. The user's own structure
+/// refined by output error predicts better than that fix (the variant explains -22.7 % of its
+/// error): what the low-pass signal removed was the bias of the subspace estimate, which the
+/// refinement removes too, so it is not a finding (`effects::needs_refined_null`, as for a p1^2
+/// basis); the latent sequence, judged against that refined structure, explains 8.2 %, below
+/// the 10 % of a finding.
+#[test]
+fn a_low_pass_signal_the_refined_structure_beats_is_not_named() {
     let (_, out) = diagnose_one("scheduling-noise", 41001, 1500);
-    let first = out.report.findings.first().expect("a finding");
-    assert!(first.detail.contains("lowpass"), "{}", first.detail);
-    assert!(first.significant);
+    let (lp, why) = blocked_finding(&out.report, "scheduling-noise");
+    assert!(lp.detail.contains("lowpass"), "{}", lp.detail);
+    assert!(lp.explained >= 0.15, "{}", lp.explained);
+    assert!(why.contains("refined by output error removes"), "{why}");
+    let against = number_after(why, "against it this variant explains ");
+    assert!(against < 0.0, "{against}");
 }
 
 /// scheduling-noise plants 21002 (order 4, low-pass input, sensor noise 0.19 std(p1)), 31000

@@ -491,6 +491,7 @@ pub fn run_one_profiled(
         for s in r.steps.iter().take(1).flat_map(|st| &st.variants_scored) {
             if s.effect == "output-nonlinearity"
                 || s.effect == "periodic-disturbance"
+                || s.effect == "scheduling-noise"
                 || s.explained > 0.05
             {
                 let _ = writeln!(
