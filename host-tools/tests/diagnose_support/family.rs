@@ -253,6 +253,9 @@ pub fn oracle(case: &FamilyCase, model: &ModelFile, mode: Mode) -> Option<Oracle
     };
     let (explained, p_value) = versus(&e0.loss(mode), &e1.loss(mode));
     let ratio = mse(model, &case.val, mode) / mse(&fitted.model, &case.val, mode).max(1e-300);
+    if case.effect == "scheduling-noise" {
+        detail.push_str(&refined_on_both(&user, case, &train, &model.fit, mode));
+    }
     Some(Oracle {
         detail,
         ratio,
@@ -260,6 +263,36 @@ pub fn oracle(case: &FamilyCase, model: &ModelFile, mode: Mode) -> Option<Oracle
         p_value,
         identifiable: identifiable(explained, p_value),
     })
+}
+
+/// The scheduling-noise oracle like with like, in words: the user's structure refined by
+/// output error (`refined_null`, what the diagnosis judges the low-pass and latent variants
+/// against) on the measured p1 against the same refinement on the noise-free p1 (`clean`):
+/// how much of the refined structure's held-out error the sensor noise leaves.
+fn refined_on_both(
+    user: &Spec,
+    case: &FamilyCase,
+    clean: &lpvid_host::data::Dataset,
+    fit: &serde_json::Value,
+    mode: Mode,
+) -> String {
+    let refined = refined_null(user);
+    let eval = |train: &lpvid_host::data::Dataset| {
+        fit_spec(&refined, train, fit)
+            .ok()
+            .and_then(|f| Eval::new(&f.model, &case.val).ok())
+    };
+    match (eval(&case.train), eval(clean)) {
+        (Some(noisy), Some(free)) => {
+            let (x, p) = versus(&noisy.loss(mode), &free.loss(mode));
+            format!(
+                "; like with like, the structure refined on each: explains {:.1} % (p = {p:.1e}, identifiable {})",
+                100.0 * x,
+                identifiable(x, p)
+            )
+        }
+        _ => "; like with like: a refined fit failed".to_string(),
+    }
 }
 
 /// The mode the planted effect is judged in: one-step prediction for coloured noise (a
