@@ -490,17 +490,17 @@ pub fn refined_null(spec: &Spec) -> Spec {
 /// refinement removes: on the family's clean plants 9003 and 21000 (affine in p1) a p1^2 basis
 /// was a replicated finding (70 % and 26 %), while the user's affine structure refined reached
 /// a lower held-out error than the fix (6.1e-4 against 4.1e-3, 6.3e-4 against 6.8e-4).
-/// The scheduling-noise variants that add low-pass scheduling signals beside the measured
-/// ones (a state-space refit, not the latent sequence, which is refined, nor LPV-ARX) are a
-/// richer scheduling basis too: on the fresh range 127000's clean plant 127001 (affine in p1)
-/// lowpass0.8(p1) explained 14.1 % of the refit's held-out error, replicated (5.3 %, 7.1 %).
+/// The scheduling-noise variants judged against the refit, those that add low-pass
+/// scheduling signals beside the measured ones, are a richer scheduling basis too (the latent
+/// sequence and LPV-ARX have nulls of their own): on the fresh range 127000's clean plant
+/// 127001 (affine in p1) lowpass0.8(p1) explained 14.1 % of the refit's held-out error,
+/// replicated (5.3 %, 7.1 %).
 pub fn needs_refined_null(s: &Scored) -> bool {
-    let scheduling_basis = match s.cand.effect {
-        Effect::ScheduledOutput | Effect::SchedulingNonlinearity => true,
-        Effect::SchedulingNoise => s.cand.spec.latent.is_none() && s.cand.spec.arx.is_none(),
-        _ => false,
-    };
-    scheduling_basis && s.cand.null.is_none() && s.cand.spec.nested_in.is_none()
+    matches!(
+        s.cand.effect,
+        Effect::ScheduledOutput | Effect::SchedulingNonlinearity | Effect::SchedulingNoise
+    ) && s.cand.null.is_none()
+        && s.cand.spec.nested_in.is_none()
 }
 
 /// Coefficients of a fitted model that are free: the non-zero entries of A^(i), B^(i),
