@@ -5,14 +5,17 @@
 //! replication (each half of the training data, [`replicate::replicated`], or the folds'
 //! agreement, [`replicate::cv_agree`]), the refit of the model's own structure when it has a
 //! null of its own ([`effects::beats_user`]), that structure with a larger past window
-//! ([`effects::larger_past`]; not for order-too-low, which is that structure), that structure
-//! refined by output error (the scheduling effects, [`effects::needs_refined_null`];
-//! coloured-noise, order-too-low and input-delay by [`states::states_check`]) and the memory rule
-//! ([`memory::forgets_as_null`]). A rule is tested only on a variant that passed the ones
-//! before it. An effect is a finding when one of its variants passes every rule: a best
-//! variant that does not replicate, or replicates and fails a later rule, gives way to the
-//! effect's next variants ([`replicate::alternatives`]). [`Judgement`] keeps what each rule
-//! found: the evidence of a finding, and the one rule named when it is blocked.
+//! ([`effects::larger_past`]; not for order-too-low, which is that structure), for an
+//! own-output variant that structure refined from the variant's fit with its own-output
+//! signals linearised ([`output::linearised_null`]), that structure refined by output error
+//! from the best of its starts ([`output::refined_structure`]; the scheduling effects,
+//! [`effects::needs_refined_null`]; coloured-noise, order-too-low and input-delay by
+//! [`states::states_check`]) and the memory rule ([`memory::forgets_as_null`]). A rule is
+//! tested only on a variant that passed the ones before it. An effect is a finding when one
+//! of its variants passes every rule: a best variant that does not replicate, or replicates
+//! and fails a later rule, gives way to the effect's next variants
+//! ([`replicate::alternatives`]). [`Judgement`] keeps what each rule found: the evidence of a
+//! finding, and the one rule named when it is blocked.
 
 use std::cell::OnceCell;
 
@@ -21,7 +24,7 @@ use super::memory::{self, Basis, Memory};
 use super::refit::{Fitted, Spec};
 use super::replicate::{Halves, Replication};
 use super::residual::{ResidualReport, ALPHA};
-use super::{encompass, replicate, states};
+use super::{encompass, output, replicate, states};
 use super::{fit_eval, mean_vaf, mode_name};
 use crate::data::Dataset;
 use crate::simulate::Mode;
@@ -85,6 +88,9 @@ pub(crate) struct Judgement {
     pub vs_larger: Option<(Versus, Basis)>,
     /// Against the model's structure refined by output error.
     pub vs_refined: Option<Versus>,
+    /// An own-output variant against the model's structure refined from the variant's fit
+    /// linearised ([`super::output::linearised_null`]).
+    pub vs_linearised: Option<Versus>,
     /// A coloured-noise or order-too-low variant against that structure refined
     /// ([`states::states_check`]).
     pub states: Option<states::StatesCheck>,
@@ -219,7 +225,10 @@ impl References {
     /// The model's structure refined by output error, fitted when a rule first needs it.
     fn refined(&self, b: &Bench<'_>) -> Option<&Eval> {
         self.refined
-            .get_or_init(|| fit_eval(&effects::refined_null(b.spec), b.train, b.val, b.fit))
+            .get_or_init(|| {
+                let m = output::refined_structure(b.spec, b.scored, b.train, b.fit)?;
+                Eval::new(&m, b.val).ok()
+            })
             .as_ref()
     }
 }
@@ -318,6 +327,20 @@ impl Bench<'_> {
         if !self.beaten(j.vs_larger.map(|v| v.0), short) {
             return;
         }
+        // an own-output variant must also beat the model's structure refined from its own
+        // fit with the added signals linearised: the null at the variant's minimum
+        // (output::linearised_null)
+        if j.effect == Effect::OutputNonlinearity {
+            j.vs_linearised = s.fitted.as_ref().zip(s.eval.as_ref()).and_then(|(f, e)| {
+                let null = s.cand.null.as_ref().unwrap_or(self.spec);
+                let m = output::linearised_null(&f.model, null, self.train).ok()?;
+                let l = Eval::new(&m, self.val).ok()?;
+                effects::versus_larger(&l.loss(mode), &e.loss(mode))
+            });
+        }
+        if !self.beaten(j.vs_linearised, short) {
+            return;
+        }
         // a scheduling variant judged against the model's structure refit must also beat
         // that structure refined by output error (effects::needs_refined_null)
         if effects::needs_refined_null(s) {
@@ -386,6 +409,7 @@ impl Judgement {
             vs_user: None,
             vs_larger: None,
             vs_refined: None,
+            vs_linearised: None,
             states: None,
             memory: None,
             passed: false,
@@ -461,6 +485,13 @@ impl Judgement {
         if let Some(v) = self.vs_refined {
             ev.push(format!(
                 "against the model's own structure refined by output error: explains {:.1} % of its held-out error (p = {:.2e})",
+                100.0 * v.0,
+                v.1
+            ));
+        }
+        if let Some(v) = self.vs_linearised {
+            ev.push(format!(
+                "against the model's own structure refined from this variant's fit with its own-output signals linearised: explains {:.1} % of its held-out error (p = {:.2e})",
                 100.0 * v.0,
                 v.1
             ));
@@ -581,6 +612,12 @@ impl Judgement {
                 100.0 * v.0,
                 v.1,
                 encompass::improvement_needed(b.tried, short)
+            )
+            } else if let Some(v) = self.vs_linearised.filter(|v| !beaten(Some(*v))) {
+                format!(
+                "the model's own structure refined from this variant's fit, its own-output signals replaced by their best linear stand-ins, removes that error as well: against it this variant explains {:.1} % of the held-out error (p = {:.2e}); what it removed is a local minimum of the structure's refinement, not a dependence on the output level",
+                100.0 * v.0,
+                v.1
             )
             } else if let Some(c) = self.states.as_ref().filter(|c| !c.passes) {
                 c.text.clone()

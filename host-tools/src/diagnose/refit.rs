@@ -559,6 +559,40 @@ pub fn fit_latent(
     Ok(fitted)
 }
 
+/// The output-error refinement of a structure from a start the caller chose (a nested
+/// structure padded from its null, [`fit_nested`]; a null started from a richer variant's
+/// fit, [`super::output::linearised_null`]): the training signals and feedback of `spec`,
+/// D refined in its constant channels and, with feedthrough, the others that may have one,
+/// and the iteration budget of [`super::output::refine_iterations`].
+pub(super) struct Refinement {
+    /// The structure's training signals (own-output signals from the measured output).
+    pub sig: Signals,
+    fb: crate::model::Feedback,
+    d_cols: Vec<usize>,
+}
+
+impl Refinement {
+    /// The refinement of `spec` on `train`.
+    pub fn new(spec: &Spec, train: &Dataset) -> Result<Refinement, RefitError> {
+        let sig = spec.signals.evaluate(train)?;
+        let fb = spec.signals.feedback(train)?;
+        let now = fb.same_sample_inputs();
+        let d_cols = (0..sig.u.ncols())
+            .filter(|&j| !now.contains(&j) && (constant_column(&sig.u, j) || spec.opts.feedthrough))
+            .collect();
+        Ok(Refinement { sig, fb, d_cols })
+    }
+
+    /// Levenberg-Marquardt on the free-run error from `start` ([`crate::refine::refine_d_columns`]),
+    /// fewer iterations for large models.
+    pub fn from(&self, start: &LpvSs) -> crate::refine::Refined {
+        let (n, r, l) = (start.n(), self.sig.u.ncols(), self.sig.y.ncols());
+        let np = (start.m() * n * (n + r) + start.c.len() * l * n + n) as f64;
+        let iters = super::output::refine_iterations(np, self.sig.len() * l);
+        crate::refine::refine_d_columns(start, &self.sig, &self.fb, &self.d_cols, iters)
+    }
+}
+
 /// A structure refined from the refined fit of the structure it is nested in (issue 14; the
 /// scheduling effects' refits). `null` is fitted first ([`fit_spec`]; it is refined: the
 /// output-error refinement of [`crate::pipeline::fit_map`]); its model is padded with the
@@ -616,20 +650,8 @@ pub fn fit_nested(
             zero(mats);
         }
     }
-    let sig = spec.signals.evaluate(train)?;
-    let fb = spec.signals.feedback(train)?;
-    let r = sig.u.ncols();
-    let now = fb.same_sample_inputs();
-    let d_cols: Vec<usize> = (0..r)
-        .filter(|&j| !now.contains(&j) && (constant_column(&sig.u, j) || spec.opts.feedthrough))
-        .collect();
-    // the null's iteration budget (diagnose/output.rs): fewer iterations for large models
-    let refine = |start: &LpvSs| {
-        let n = start.n();
-        let np = (m * n * (n + r) + start.c.len() * sig.y.ncols() * n + n) as f64;
-        let iters = super::output::refine_iterations(np, train.len() * sig.y.ncols());
-        crate::refine::refine_d_columns(start, &sig, &fb, &d_cols, iters)
-    };
+    let refinement = Refinement::new(spec, train)?;
+    let refine = |start: &LpvSs| refinement.from(start);
     let padded = refine(&start);
     // the second start: the structure's own PBSID estimate, refined the same way; the lower
     // training error is kept, so the result stays at or below the null's training error
@@ -671,7 +693,7 @@ pub fn fit_nested(
     };
     let mut model = rf.model;
     // K is the null's (as fit_map)
-    crate::refine::keep_k_if_it_predicts(&mut model, &sig);
+    crate::refine::keep_k_if_it_predicts(&mut model, &refinement.sig);
     let mut rec = match &base.model.fit {
         Value::Object(m) => m.clone(),
         _ => Map::new(),
