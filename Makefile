@@ -44,7 +44,10 @@ host-lib:
 	fi; echo "host-lib: the library builds without the command line"
 
 # Unit, integration and acceptance tests (release: the acceptance tests are Monte-Carlo runs).
+# The measured-data tests (public benchmarks, cascaded tanks hold-out) read ../shared/data
+# and skip without it: `make test` refuses to pass without them.
 test-all:
+	@test -f ../shared/data/README.md || { echo "test-all: ../shared/data is missing beside the checkout; the measured-data tests would be skipped"; exit 1; }
 	cargo test --workspace --release
 
 # The firmware in QEMU with its UART on a pseudo-terminal: stream a fixture through
