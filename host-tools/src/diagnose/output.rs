@@ -515,10 +515,8 @@ pub fn linearised_start(
         lines.push((j, coef[0], beta));
     }
     // a constant channel of the null, to carry the lines' intercepts
-    let constant = (0..r0).find(|&j| {
-        let c = sig.u.column(j);
-        c[0] != 0.0 && c.iter().all(|x| (x - c[0]).abs() <= 1e-12 * c[0].abs())
-    });
+    let constant =
+        (0..r0).find(|&j| sig.u[(0, j)] != 0.0 && super::refit::constant_column(&sig.u, j));
     let (c, d) = (&v.c[0], &v.d[0]);
     let d0 = d.columns(0, r0).into_owned();
     let mut out = crate::lpvss::LpvSs {

@@ -333,7 +333,7 @@ impl Spec {
 pub use crate::record::order_rule;
 
 /// Is input column j constant on the training data?
-fn constant_column(u: &DMatrix<f64>, j: usize) -> bool {
+pub(super) fn constant_column(u: &DMatrix<f64>, j: usize) -> bool {
     let c = u.column(j);
     let first = c[0];
     c.iter()
