@@ -441,6 +441,8 @@ pub struct ArxReport {
     pub final_refit: String,
     /// Accumulation precision, "f32" or "f64".
     pub precision: &'static str,
+    /// Per IV pass, the model whose free run gave its instruments, in words (empty for ls).
+    pub instruments_from: Vec<String>,
 }
 
 /// A fitted LPV-ARX model with the scheduling basis it uses and the report.
@@ -922,6 +924,27 @@ fn refit_on(n: &Normal, support: Option<&[usize]>) -> Option<Vec<f64>> {
     let mut work = vec![0.0; refit_work_len(nt)];
     refit(&prob, &mut theta, &mut work).ok()?;
     theta.iter().all(|v| v.is_finite()).then_some(theta)
+}
+
+/// The factors by which an IV pass whose model cannot be simulated scales that model's
+/// frozen poles for its instruments, in the order tried ([`with_poles_scaled`]; 0 keeps the
+/// model's FIR part).
+const POLE_SCALES: [f64; 4] = [0.8, 0.6, 0.3, 0.0];
+
+/// `theta` with a_i scaled by gamma^i: at every frozen scheduling value the roots of
+/// z^na + a_1 z^(na-1) + ... + a_na scale by gamma (the b coefficients unchanged), so a model
+/// that cannot be simulated becomes one that can, with the same input path.
+fn with_poles_scaled(d: &ArxDims, theta: &[f64], gamma: f64) -> Vec<f64> {
+    let mut out = theta.to_vec();
+    let nbas = d.n_basis().unwrap_or(1);
+    for i in 1..=d.na {
+        for m in 0..nbas {
+            if let Some(j) = d.index_a(i, m) {
+                out[j] *= gamma.powi(i as i32);
+            }
+        }
+    }
+    out
 }
 
 fn support_of(theta: &[f64]) -> Vec<usize> {
@@ -1461,7 +1484,37 @@ pub fn fit(
     }];
     // the instruments of the first IV pass come from the unpenalised LS fit: a sparse LS
     // model may miss dynamics the instruments must carry
-    let mut model = refit_on(&normal(&st_t.total, 0.0)?, None).unwrap_or(choice.theta.clone());
+    let unpenalised = refit_on(&normal(&st_t.total, 0.0)?, None);
+    // when the model meant to give a pass its instruments cannot be simulated on the training
+    // scheduling (a least-squares or IV estimate can be unstable where the plant is not),
+    // the next of `fallbacks` gives them: for the first pass the cross-validated LS fit,
+    // then that fit with its frozen poles pulled towards the origin
+    // ([`with_poles_scaled`], down to an FIR model, which any bounded input simulates); for
+    // a later pass the estimate that failed, its poles pulled in the same way (the estimate
+    // itself is discarded: a model that cannot be simulated cannot be the result either)
+    let scaled = |theta: &[f64], what: &str| -> Vec<(Vec<f64>, String)> {
+        POLE_SCALES
+            .iter()
+            .rev()
+            .map(|g| {
+                (
+                    with_poles_scaled(&dims, theta, *g),
+                    format!("{what} with its frozen poles scaled by {g}"),
+                )
+            })
+            .collect()
+    };
+    let lasso_ls = "the cross-validated least-squares fit";
+    let mut fallbacks = scaled(&choice.theta, lasso_ls);
+    if unpenalised.as_ref().is_some_and(|m| *m != choice.theta) {
+        fallbacks.push((choice.theta.clone(), lasso_ls.to_string()));
+    }
+    let mut next_from = match &unpenalised {
+        Some(_) => "the unpenalised least-squares fit".to_string(),
+        None => format!("{lasso_ls} (the unpenalised one is singular)"),
+    };
+    let mut instruments_from = Vec::new();
+    let mut model = unpenalised.unwrap_or(choice.theta.clone());
     let mut states = vec![(choice, curve, rule, st_t, st_c)];
     let mut iterations = 0;
     let mut converged = opts.estimator == Estimator::Ls;
@@ -1469,13 +1522,14 @@ pub fn fit(
     let mut pick = 0;
     if opts.estimator != Estimator::Ls {
         let mut last_err = None;
+        // whether the last state was discarded because its model cannot be simulated
+        let mut discarded = false;
         while iterations < opts.max_iter {
             let (t, c) = match pass(Instruments::Simulated(&model)) {
                 Ok(v) => v,
                 Err(e) => {
-                    // the model of the last state cannot even be simulated on the training
-                    // scheduling: discard it and keep the best earlier IV state
-                    if states.len() > 1 && iterations > 0 {
+                    if iterations > 0 && !discarded {
+                        discarded = true;
                         states.pop();
                         history.push(IterRecord {
                             iteration: iterations + 1,
@@ -1485,14 +1539,26 @@ pub fn fit(
                             cost: f64::NAN,
                             change: f64::NAN,
                         });
-                        pick = (1..states.len())
-                            .min_by(|&a, &b| states[a].0.cost.total_cmp(&states[b].0.cost))
-                            .unwrap_or(0);
+                        fallbacks =
+                            scaled(&model, &format!("the estimate of IV pass {iterations}"));
                     }
+                    if let Some((m, what)) = fallbacks.pop() {
+                        next_from =
+                            format!("{what} (the model before it cannot be simulated: {e})");
+                        model = m;
+                        continue;
+                    }
+                    // no fallback left: keep the best IV state there is
+                    pick = (1..states.len())
+                        .min_by(|&a, &b| states[a].0.cost.total_cmp(&states[b].0.cost))
+                        .unwrap_or(0);
                     last_err = Some(e);
                     break;
                 }
             };
+            instruments_from.push(std::mem::take(&mut next_from));
+            discarded = false;
+            fallbacks.clear();
             iterations += 1;
             let (ch, cv, rule) = select(&t, &c, &grid, opts)?;
             let dist = |a: &[f64], b: &[f64]| {
@@ -1522,6 +1588,7 @@ pub fn fit(
             model = ch.theta.clone();
             states.push((ch, cv, rule, t, c));
             pick = states.len() - 1;
+            next_from = format!("the estimate of IV pass {iterations}");
             if same_sup && change <= opts.tol {
                 converged = true;
                 break;
@@ -1637,6 +1704,7 @@ pub fn fit(
             Precision::F32 => "f32",
             Precision::F64 => "f64",
         },
+        instruments_from,
     };
     let exps = exponents(s, opts.ng)?;
     Ok(ArxFit {
@@ -1879,6 +1947,7 @@ pub fn fit_record(opts: &ArxOptions, fit: &ArxFit, grid: &[f64], files: Value) -
         "support": r.support_names,
         "coefficients": coefficients,
         "n_theta": r.n_theta,
+        "instruments_from": r.instruments_from,
         "iterations": r.iterations,
         "converged": r.converged,
         "cycle": r.cycle,
@@ -2070,5 +2139,70 @@ mod tests {
         }
         // ... and is really f32: not bit-identical
         assert!(t32.values().iter().zip(whole.values()).any(|(a, b)| a != b));
+    }
+
+    /// A first-order LPV plant x(k) = (a0 + a1 p(k)) x(k-1) + u(k-1), p a slow sine, measured
+    /// through white noise on y and on p (ARX 4/4, quadratic basis: over-parametrised, so
+    /// least-squares and IV estimates can be unstable where the plant is not); returns the
+    /// signals and the noise-free output.
+    fn noisy_first_order(
+        a: (f64, f64),
+        noise: (f64, f64),
+        n: usize,
+        seed: u64,
+    ) -> (Signals, Vec<f64>) {
+        use rand::{rngs::StdRng, Rng, SeedableRng};
+        let mut g = StdRng::seed_from_u64(seed);
+        let u = DMatrix::from_fn(n, 1, |_, _| if g.gen_bool(0.5) { 1.0 } else { -1.0 });
+        let pt: Vec<f64> = (0..n).map(|k| (0.02 * k as f64).sin()).collect();
+        let p = DMatrix::from_fn(n, 1, |k, _| pt[k] + noise.1 * g.gen_range(-1.0..1.0));
+        let mut x = vec![0.0; n];
+        let mut y = DMatrix::zeros(n, 1);
+        for k in 1..n {
+            x[k] = (a.0 + a.1 * pt[k]) * x[k - 1] + u[(k - 1, 0)];
+            y[(k, 0)] = x[k] + noise.0 * g.gen_range(-1.0..1.0);
+        }
+        (Signals { u, y, p }, x)
+    }
+
+    #[test]
+    fn an_iv_pass_whose_model_cannot_be_simulated_takes_instruments_from_its_poles_pulled_in() {
+        // (plant, noise, N, seed, the fallback that must have been taken); before it, both
+        // fits failed with "the free-run simulation of the current model diverges"
+        let cases = [
+            (
+                (0.8, 0.15),
+                (0.5, 0.5),
+                300,
+                17,
+                "the estimate of IV pass 1 with its frozen poles scaled by 0.8 (the model before it cannot be simulated",
+            ),
+            (
+                (0.9, 0.08),
+                (1.0, 0.2),
+                200,
+                11,
+                "the cross-validated least-squares fit (the model before it cannot be simulated",
+            ),
+        ];
+        for (a, noise, n, seed, what) in cases {
+            let (sig, _) = noisy_first_order(a, noise, n, seed);
+            let mut o = ArxOptions::new(4, 4, 2);
+            o.estimator = Estimator::Bciv;
+            let f = fit(&sig, None, &o).unwrap();
+            let from = &f.report.instruments_from;
+            assert!(from.iter().any(|w| w.starts_with(what)), "{from:?}");
+            assert_eq!(from.len(), f.report.iterations);
+            // the model the fit returns runs free through its training record
+            let basis = DMatrix::from_fn(n, 3, |k, j| sig.p[(k, 0)].powi(j as i32));
+            let sim = Signals {
+                u: sig.u.clone(),
+                y: DMatrix::zeros(n, 1),
+                p: basis,
+            };
+            let yh = arx_run(&f.model, &sim, Mode::FreeRun);
+            let ymax = sig.y.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+            assert!(yh.iter().all(|v| v.abs() < 10.0 * ymax), "{}", yh.amax());
+        }
     }
 }
