@@ -235,6 +235,12 @@ fn print_summary(
                 "not settled within --max-iter"
             }
         )?;
+        // a pass whose model could not be simulated took its instruments from a fallback
+        for (k, what) in r.instruments_from.iter().enumerate() {
+            if what.contains("cannot be simulated") {
+                writeln!(out, "    pass {}: instruments from {what}", k + 1)?;
+            }
+        }
     }
     if opts.estimator == Estimator::Bciv {
         writeln!(out, "  sigma_eta = {:.4} ({})", r.sigma_p, r.sigma_rule)?;
