@@ -7,7 +7,7 @@
 # qemu-system-arm: the firmware's Cortex-M4F board (mps2-an386) for make device-test.
 DEB_PACKAGES := pkg-config libopenblas-dev qemu-system-arm
 
-.PHONY: demo test setup check-fmt clippy core-thumb host-lib test-all bench device-test device-count python-test
+.PHONY: demo test test-long shared-data setup check-fmt clippy core-thumb host-lib test-all bench device-test device-count python-test
 
 demo: setup
 	cargo run --release -p lpvid-host --bin lpvid -- demo
@@ -46,9 +46,18 @@ host-lib:
 # Unit, integration and acceptance tests (release: the acceptance tests are Monte-Carlo runs).
 # The measured-data tests (public benchmarks, cascaded tanks hold-out) read ../shared/data
 # and skip without it: `make test` refuses to pass without them.
-test-all:
-	@test -f ../shared/data/README.md || { echo "test-all: ../shared/data is missing beside the checkout; the measured-data tests would be skipped"; exit 1; }
+test-all: shared-data
 	cargo test --workspace --release
+
+# The long tier: the tests marked `#[ignore = "long tier: make test-long"]` (the measured
+# benchmarks that take minutes each, more seeds and plants of the diagnosis' acceptance runs).
+# Run it before merging a change to diagnose, refine or pbsid: CI runs `make test`, whose
+# tier covers every behaviour once and stays well under 30 minutes on a 2-core machine.
+test-long: setup shared-data
+	cargo test --workspace --release -- --ignored
+
+shared-data:
+	@test -f ../shared/data/README.md || { echo "../shared/data is missing beside the checkout; the measured-data tests would be skipped"; exit 1; }
 
 # The firmware in QEMU with its UART on a pseudo-terminal: stream a fixture through
 # `lpvid device`, pull the statistics, compare with the file-based fit (scripts/device-test.sh).

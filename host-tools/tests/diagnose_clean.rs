@@ -34,6 +34,7 @@ fn a_noise_model_over_a_white_refined_residual_is_not_a_finding() {
 /// is white, and nothing is named; the Lur'e channels that matched the refinement's own gain
 /// (52 % each) explain nothing beyond it.
 #[test]
+#[ignore = "long tier: make test-long"]
 fn a_refinement_stuck_in_a_local_minimum_is_not_coloured_noise() {
     let (_, out) = diagnose_one("clean", 121000, 1500);
     let (cn, why) = blocked_finding(&out.report, "coloured-noise");
@@ -74,6 +75,7 @@ fn a_low_pass_scheduling_signal_absorbing_the_subspace_bias_is_not_scheduling_no
 /// user's structure, order 6 explains -57 % of the refined structure's error, and the refined
 /// residual is white (p = 0.044): neither is a finding.
 #[test]
+#[ignore = "long tier: make test-long"]
 fn a_larger_order_the_refined_structure_matches_is_not_a_finding() {
     let (_, out) = diagnose_one("clean", 31003, 1500);
     let r = &out.report;
@@ -95,6 +97,7 @@ fn a_larger_order_the_refined_structure_matches_is_not_a_finding() {
 /// error like the user's structure it explains nothing beyond it. The same plant with a
 /// planted dead time of 2 samples is still named input-delay, at its oracle's ratio.
 #[test]
+#[ignore = "long tier: make test-long"]
 fn a_delay_the_refined_structure_matches_is_not_a_finding() {
     let (_, out) = diagnose_one("clean", 67003, 1500);
     let (d, why) = blocked_finding(&out.report, "input-delay");
@@ -115,6 +118,7 @@ fn a_delay_the_refined_structure_matches_is_not_a_finding() {
 /// by output error explains 99.7 % (350x), and refined, the past window of 9 adds nothing:
 /// the deficiency is the estimate, which the report says in a note, not a missing state.
 #[test]
+#[ignore = "long tier: make test-long"]
 fn a_biased_estimate_is_a_note_not_a_missing_state() {
     let (_, out) = diagnose_one("clean", 37000, 1500);
     let r = &out.report;
@@ -138,6 +142,7 @@ fn a_biased_estimate_is_a_note_not_a_missing_state() {
 /// (71.6 % of its error); both fixes lower the held-out error as before the rule (20.64x
 /// one-step, 2.37x free run).
 #[test]
+#[ignore = "long tier: make test-long"]
 fn coloured_noise_and_missing_states_are_still_named() {
     let (_, out) = diagnose_one("coloured-noise", 33000, 1500);
     let f = out.report.findings.first().expect("findings");

@@ -110,6 +110,7 @@ fn diagnose_fix_writes_model_report_and_plots() {
 }
 
 #[test]
+#[ignore = "long tier: make test-long"]
 fn diagnose_without_fix_only_reports() {
     let (plant, args) = planted("output-offset");
     let (train, val) = generate(&plant, 3);

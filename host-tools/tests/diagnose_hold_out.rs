@@ -25,6 +25,7 @@ fn tanks() -> Option<std::path::PathBuf> {
 }
 
 #[test]
+#[ignore = "long tier: make test-long"]
 fn hold_out_selects_then_refits_on_all_rows() {
     let Some(est) = tanks() else {
         eprintln!("skipped: ../shared/data not found");

@@ -16,6 +16,7 @@ use diagnose_support::family::run_one;
 /// unseen 0.180 (a series too long a regression to be tried); each is now tried alone and the
 /// planted one is named.
 #[test]
+#[ignore = "long tier: make test-long"]
 fn a_line_is_found_when_the_refit_diverges() {
     let run = run_one("periodic-disturbance", 53002, 1500);
     println!("{} {:.2} {:?}", run.named, run.ratio, run.oracle);
@@ -33,6 +34,7 @@ fn a_line_is_found_when_the_refit_diverges() {
 /// unseen 0.402 (with a third line at 1.205), and the series under 0.402 explained -1.7 %;
 /// coloured-noise was named. Grouped under the seen 0.803, the fundamental is named.
 #[test]
+#[ignore = "long tier: make test-long"]
 fn a_series_is_not_grouped_under_an_unseen_fundamental() {
     let run = run_one("periodic-disturbance", 21002, 1500);
     println!("{} {:.2} {:?}", run.named, run.ratio, run.oracle);

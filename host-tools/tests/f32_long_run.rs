@@ -1,15 +1,26 @@
-//! Acceptance: f32 statistics stay accurate over a long run (issue 18). 10^8 samples here
-//! (`cargo test --release -p lpvid-host --test f32_long_run`); the `f32_long_run` example
-//! runs 10^9. Timings in src/stats.rs's module doc.
+//! Acceptance: f32 statistics stay accurate over a long run (issue 18). 10^7 samples in
+//! `make test` (plain f32 sums are already 2 % off there), 10^8 in `make test-long`
+//! (`LPVID_LONG_RUN_SAMPLES` sets another length); the `f32_long_run` example runs 10^9.
+//! Timings in src/stats.rs's module doc.
 
 mod long_run;
 
 #[test]
 fn f32_long_run() {
+    check(10_000_000);
+}
+
+#[test]
+#[ignore = "long tier: make test-long"]
+fn f32_long_run_1e8() {
+    check(100_000_000);
+}
+
+fn check(default_samples: u64) {
     let n = std::env::var("LPVID_LONG_RUN_SAMPLES")
         .ok()
         .and_then(|v| v.parse().ok())
-        .unwrap_or(100_000_000u64);
+        .unwrap_or(default_samples);
     let r = long_run::run(n, 18);
     println!("{r:?}");
     // compensated f32 sums: within 1e-5 of the f64 reference, entry by entry

@@ -304,6 +304,7 @@ fn seeds() -> std::ops::RangeInclusive<u64> {
 /// measured on these seeds (docs/bench-diagnose.md has the spread); a plant whose
 /// nonlinearity is too weak to matter at its noise level may honestly be left alone.
 #[test]
+#[ignore = "long tier: make test-long"]
 fn output_nonlinearity_on_random_plant_families() {
     let mut lines = Vec::new();
     let mut named = 0;
@@ -407,6 +408,7 @@ fn a_fix_that_leans_on_its_estimated_start_is_not_applied() {
 /// refined from the spread's guess the variant explains 97.6 %, replicates and is applied at
 /// 55.5x (docs/bench-diagnose.md, h19pn section).
 #[test]
+#[ignore = "long tier: make test-long"]
 fn a_sin_channels_frequency_follows_the_data() {
     let r = diagnose_support::family::run_one("output-nonlinearity", 15002, 1500);
     println!("{}: named {}, ratio {:.2}", r.description, r.named, r.ratio);
