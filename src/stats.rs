@@ -22,9 +22,9 @@
 //! | 10^7 | 1.9e-2 | 6.5e-8 | 94.1216 / 94.1216 / 93.51 |
 //! | 10^8 | 0.83 (counts stuck at 2^24) | 5.5e-8 | 94.1218 / 94.1218 / no fit (scheduling looks constant) |
 //!
-//! The test `f32_long_run` runs 10^8 samples (87 s of CPU here, one core; 5 to 10 minutes of
-//! wall time while three other sessions shared the 2 cores); the example `f32_long_run`
-//! runs 10^9 (about 15 minutes of CPU by the same rate; not run in this round).
+//! The test `f32_long_run` runs 10^7 samples in `make test` (12 s here) and 10^8 in
+//! `make test-long` (87-126 s of CPU, one core); the example `f32_long_run` runs 10^9
+//! (about 15 minutes of CPU by the same rate; not run in this round).
 //!
 //! - Blocked summation (a block of B vectors summed plainly, then flushed into the total):
 //!   with a block in registers it is free, and [`Gram::update_batch`] does exactly that (the
