@@ -52,7 +52,7 @@ test-all: shared-data
 # The long tier: the tests marked `#[ignore = "long tier: make test-long"]` (the measured
 # benchmarks that take minutes each, more seeds and plants of the diagnosis' acceptance runs).
 # Run it before merging a change to diagnose, refine or pbsid: CI runs `make test`, whose
-# tier covers every behaviour once and stays well under 30 minutes on a 2-core machine.
+# tier covers every behaviour once in about 10 minutes of tests on a 2-core machine.
 test-long: setup shared-data
 	cargo test --workspace --release -- --ignored
 
