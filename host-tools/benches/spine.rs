@@ -162,6 +162,28 @@ fn ridge_step(c: &mut Criterion) {
         })
     });
     group.finish();
+    // a ridge below the shifted solve's floor (or the minimum-norm solution), after the
+    // reduction every kernel fit makes: the kernel built again and fully decomposed
+    // (before) against the eigenvectors of the tridiagonal T already at hand, taken back by
+    // Q for the target's columns only (now), same kernel, same run
+    let t = Tridiagonal::new(&g);
+    let mut group = c.benchmark_group("ridge_below_shifted_floor_B1_p5_kernel995");
+    group.sample_size(10);
+    group.bench_function("kernel again + full eigendecomposition (before)", |b| {
+        b.iter(|| {
+            let g2 = lpvid_host::pbsid::dual_kernel_matrix(&slab, p, nb, true);
+            let (_, v) = sym_eig(&g2).unwrap();
+            black_box(&v * v.tr_mul(&y))
+        })
+    });
+    group.bench_function("eigenvectors of the reduced T (now)", |b| {
+        b.iter(|| {
+            let (_, v) = t.eigen().unwrap();
+            let bt = t.to_tridiagonal(&y);
+            black_box(t.from_tridiagonal(&(&v * v.tr_mul(&bt))))
+        })
+    });
+    group.finish();
     // one GCV evaluation (RSS and trace at a lambda) as separate factor / solve / trace
     // passes (before) and fused into one forward and one backward pass (now): 100 lambdas
     // over the range GCV searches, same tridiagonal, same run

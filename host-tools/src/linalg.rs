@@ -864,6 +864,46 @@ impl Tridiagonal {
         Ok((vals, proj))
     }
 
+    /// Eigenvalues of T (= of A) in descending order and the matching eigenvectors of T as
+    /// columns, in the tridiagonal coordinates (faer's divide and conquer on T). What a
+    /// cut-off or a ridge too small for [`Tridiagonal::solve_shifted`] needs, without
+    /// reducing A again or turning all n eigenvectors back into A's coordinates: a solution
+    /// of a few columns goes back by [`Tridiagonal::from_tridiagonal`].
+    pub fn eigen(&self) -> Result<(Vec<f64>, DMatrix<f64>), LinalgError> {
+        use faer::dyn_stack::{MemBuffer, MemStack};
+        use faer::linalg::evd;
+        let n = self.n;
+        if n == 0 {
+            return Ok((Vec::new(), DMatrix::zeros(0, 0)));
+        }
+        let par = par_for(n);
+        let mut sub = self.sub.clone();
+        sub.push(0.0);
+        let mut s = faer::diag::Diag::<f64>::zeros(n);
+        let mut u = faer::Mat::<f64>::zeros(n, n);
+        // the dense driver's workspace covers its tridiagonal stage
+        let scratch = evd::self_adjoint_evd_scratch::<f64>(
+            n,
+            evd::ComputeEigenvectors::Yes,
+            par,
+            Default::default(),
+        );
+        evd::tridiagonal_self_adjoint_evd(
+            faer::ColRef::from_slice(&self.diag).as_diagonal(),
+            faer::ColRef::from_slice(&sub).as_diagonal(),
+            s.as_mut(),
+            Some(u.as_mut()),
+            par,
+            MemStack::new(&mut MemBuffer::new(scratch)),
+            Default::default(),
+        )
+        .map_err(|e| LinalgError::Eigen(format!("{e:?}")))?;
+        // faer's order is ascending
+        let vals = (0..n).rev().map(|i| s[i]).collect();
+        let vecs = DMatrix::from_fn(n, n, |i, j| u[(i, n - 1 - j)]);
+        Ok((vals, vecs))
+    }
+
     /// T + lam I = L D L^T (unit lower bidiagonal L), or None when it is not numerically
     /// positive definite.
     fn shifted_ldl(&self, lam: f64) -> Option<ShiftedLdl> {
@@ -1216,6 +1256,34 @@ mod tridiagonal_tests {
         );
         // a shift that leaves T + lam I indefinite is refused
         assert!(t.shifted_norm_trace(-0.5 * vals[0], &b).is_none());
+    }
+
+    /// T's eigenvectors taken back by Q are A's: A = (Q V) diag(vals) (Q V)^T, Q V orthonormal,
+    /// and the eigenvalues those of the full decomposition (QL below faer's recursion
+    /// threshold, divide and conquer above it).
+    #[test]
+    fn tridiagonal_eigenvectors_reconstruct_the_matrix() {
+        for n in [1usize, 2, 5, 40, 130, 300] {
+            let a = test_matrix(n);
+            let t = Tridiagonal::new(&a);
+            let (vals, v) = t.eigen().unwrap();
+            let (full, _) = sym_eig(&a).unwrap();
+            for (x, e) in vals.iter().zip(&full) {
+                assert!((x - e).abs() <= 1e-11 * full[0], "n = {n}: {x} {e}");
+            }
+            assert!(
+                vals.windows(2).all(|w| w[0] >= w[1]),
+                "n = {n}: not descending"
+            );
+            let qv = t.from_tridiagonal(&v);
+            let back = &qv * DMatrix::from_diagonal(&DVector::from_vec(vals)) * qv.transpose();
+            assert!((&back - &a).norm() <= 1e-11 * a.norm(), "n = {n}");
+            let gram = qv.transpose() * &qv;
+            assert!(
+                (gram - DMatrix::identity(n, n)).norm() <= 1e-11 * n as f64,
+                "n = {n}"
+            );
+        }
     }
 
     #[test]

@@ -13,9 +13,8 @@ use nalgebra::DMatrix;
 
 use super::error::FitError;
 use super::realize::states_from_gkz;
-use super::ridge::{ridge_eig, ridge_solve, ridge_tridiagonal, NormalForm, RegressionInfo};
+use super::ridge::{ridge_solve, ridge_tridiagonal, NormalForm, RegressionInfo};
 use super::settings::PbsidOptions;
-use super::settings::Reg;
 use crate::kernel_sweep::{dot4, KernelSweep};
 use crate::linalg::Tridiagonal;
 
@@ -36,27 +35,9 @@ pub(crate) fn dual_states(
     }
     let y = DMatrix::from_fn(l, nb, |j, k| slab.y(k + p)[j]);
     let (yt, total, rows) = (y.transpose(), y.norm_squared(), nb as f64);
-    // Tikhonov needs only the kernel's lower triangle, reduced in its own storage
-    let solved = match opts.reg {
-        Reg::TikhonovGcv | Reg::Tikhonov(_) => {
-            let tri = Tridiagonal::from_lower(dual_kernel_lower(slab, p, nb, opts.feedthrough));
-            ridge_tridiagonal(&tri, &yt, NormalForm::Dual, total, rows, opts.reg)?
-        }
-        _ => None,
-    };
-    let (x, info) = match solved {
-        Some(done) => done,
-        // minimum norm, or a ridge parameter too small for the shifted solve: the whole
-        // kernel (the same bits again) and its eigendecomposition
-        None => ridge_eig(
-            &dual_kernel_matrix(slab, p, nb, opts.feedthrough),
-            &yt,
-            NormalForm::Dual,
-            total,
-            rows,
-            opts.reg,
-        )?,
-    };
+    // only the kernel's lower triangle, reduced in its own storage
+    let tri = Tridiagonal::from_lower(dual_kernel_lower(slab, p, nb, opts.feedthrough));
+    let (x, info) = ridge_tridiagonal(&tri, &yt, NormalForm::Dual, total, rows, opts.reg)?;
     let alpha = x.transpose(); // l x nb
     let gkz = dual_gamma_kz_matrix(dims, f, slab, &alpha, nb + 1);
     let (sv, x) = states_from_gkz(&gkz, nb)?;

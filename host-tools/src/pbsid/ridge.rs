@@ -129,8 +129,8 @@ pub(crate) const SHIFTED_SOLVE_MIN: f64 = 1e-10;
 /// The ridge step shared by every form of regression (13): X = (A + lam I)^{-1} B, lam
 /// chosen by `reg` on the common [`Spectrum`] (so GCV is the same number in the primal and
 /// the dual), lam = 0 the minimum-norm solution (eq. (18)). Tikhonov reduces A to
-/// tridiagonal form once: eigenvalues and target energies without eigenvectors, then one
-/// tridiagonal solve, O(n^2) after the reduction instead of a full eigendecomposition.
+/// tridiagonal form once ([`ridge_tridiagonal`]); the minimum-norm solution is solved by
+/// the eigendecomposition of A ([`ridge_eig`]).
 pub(crate) fn ridge_solve(
     a: &DMatrix<f64>,
     b: &DMatrix<f64>,
@@ -140,9 +140,7 @@ pub(crate) fn ridge_solve(
     reg: Reg,
 ) -> Result<(DMatrix<f64>, RegressionInfo), FitError> {
     if matches!(reg, Reg::TikhonovGcv | Reg::Tikhonov(_)) {
-        if let Some(done) = ridge_tridiagonal(&Tridiagonal::new(a), b, form, total, rows, reg)? {
-            return Ok(done);
-        }
+        return ridge_tridiagonal(&Tridiagonal::new(a), b, form, total, rows, reg);
     }
     ridge_eig(a, b, form, total, rows, reg)
 }
@@ -174,10 +172,13 @@ fn spectrum(
     }
 }
 
-/// The Tikhonov ridge step of [`ridge_solve`] on A already reduced to tridiagonal form:
-/// lambda by `reg` (GCV over the spectrum), then one shifted tridiagonal solve. None when
+/// The ridge step of [`ridge_solve`] on A already reduced to tridiagonal form, B given in
+/// A's coordinates. Tikhonov: lambda by `reg` (GCV over the spectrum, O(n) per lambda in the
+/// dual), then one shifted tridiagonal solve, O(n^2) after the reduction in all. When
 /// lambda is below [`SHIFTED_SOLVE_MIN`] of the largest eigenvalue or T + lambda I is not
-/// numerically positive definite: the caller then solves by [`ridge_eig`].
+/// numerically positive definite, and for the minimum-norm solution: the eigenvectors of T
+/// ([`Tridiagonal::eigen`]) with the rank cut-off, as [`ridge_eig`] does with those of A,
+/// without reducing A a second time.
 pub(crate) fn ridge_tridiagonal(
     tri: &Tridiagonal,
     b: &DMatrix<f64>,
@@ -185,12 +186,32 @@ pub(crate) fn ridge_tridiagonal(
     total: f64,
     rows: f64,
     reg: Reg,
-) -> Result<Option<(DMatrix<f64>, RegressionInfo)>, FitError> {
+) -> Result<(DMatrix<f64>, RegressionInfo), FitError> {
     let bt = tri.to_tridiagonal(b);
+    if matches!(reg, Reg::TikhonovGcv | Reg::Tikhonov(_)) {
+        if let Some(done) = shifted_ridge(tri, &bt, form, total, rows, reg)? {
+            return Ok(done);
+        }
+    }
+    let (vals, vecs) = tri.eigen()?;
+    let (x, info) = filtered(&vals, &vecs, &bt, form, total, rows, reg);
+    Ok((tri.from_tridiagonal(&x), info))
+}
+
+/// The Tikhonov step of [`ridge_tridiagonal`] by one shifted solve, `bt` in the tridiagonal
+/// coordinates; None where that solve is not accurate (see there).
+fn shifted_ridge(
+    tri: &Tridiagonal,
+    bt: &DMatrix<f64>,
+    form: NormalForm,
+    total: f64,
+    rows: f64,
+    reg: Reg,
+) -> Result<Option<(DMatrix<f64>, RegressionInfo)>, FitError> {
     let (lam, dof, vmax) = match form {
         NormalForm::Primal => {
             // the primal residual needs the energies b_i^2 / lambda_i: eigen-coordinates
-            let (vals, proj) = tri.eigen_projection(&bt)?;
+            let (vals, proj) = tri.eigen_projection(bt)?;
             let (lam, dof, _) = choose_lambda(reg, &spectrum(form, &vals, &proj, total, rows));
             (lam, dof, vals.first().copied().unwrap_or(0.0).max(0.0))
         }
@@ -199,7 +220,7 @@ pub(crate) fn ridge_tridiagonal(
             // lam tr((T + lam I)^{-1}): O(n) per lambda, no eigenvalues needed
             let vmax = tri.largest_eigenvalue().max(0.0);
             let curve = |lam: f64| {
-                tri.shifted_norm_trace(lam, &bt)
+                tri.shifted_norm_trace(lam, bt)
                     .map(|(xx, tr)| (lam * lam * xx, lam * tr))
             };
             let lam = match reg {
@@ -214,7 +235,7 @@ pub(crate) fn ridge_tridiagonal(
         }
     };
     if lam > SHIFTED_SOLVE_MIN * vmax && dof.is_finite() {
-        if let Some(w) = tri.solve_shifted(lam, &bt) {
+        if let Some(w) = tri.solve_shifted(lam, bt) {
             let lambda = Some((lam, vmax));
             return Ok(Some((
                 tri.from_tridiagonal(&w),
@@ -226,7 +247,7 @@ pub(crate) fn ridge_tridiagonal(
 }
 
 /// The ridge step of [`ridge_solve`] by the full symmetric eigendecomposition of A (the
-/// minimum-norm solution, and Tikhonov where [`ridge_tridiagonal`] declines).
+/// minimum-norm solution of the primal form).
 pub(crate) fn ridge_eig(
     a: &DMatrix<f64>,
     b: &DMatrix<f64>,
@@ -235,16 +256,31 @@ pub(crate) fn ridge_eig(
     rows: f64,
     reg: Reg,
 ) -> Result<(DMatrix<f64>, RegressionInfo), FitError> {
-    let tikhonov = matches!(reg, Reg::TikhonovGcv | Reg::Tikhonov(_));
     let (vals, vecs) = sym_eig(a)?;
-    let mut proj = vecs.transpose() * b;
-    let (lam, dof, cut) = choose_lambda(reg, &spectrum(form, &vals, &proj, total, rows));
+    Ok(filtered(&vals, &vecs, b, form, total, rows, reg))
+}
+
+/// X = V diag(phi_i / lambda_i) V^T B from eigenvalues `vals` (descending) and orthonormal
+/// eigenvectors `vecs`: lambda chosen by `reg` on their [`Spectrum`], components below the
+/// rank cut-off dropped ([`filter`]).
+fn filtered(
+    vals: &[f64],
+    vecs: &DMatrix<f64>,
+    b: &DMatrix<f64>,
+    form: NormalForm,
+    total: f64,
+    rows: f64,
+    reg: Reg,
+) -> (DMatrix<f64>, RegressionInfo) {
+    let tikhonov = matches!(reg, Reg::TikhonovGcv | Reg::Tikhonov(_));
+    let mut proj = vecs.tr_mul(b);
+    let (lam, dof, cut) = choose_lambda(reg, &spectrum(form, vals, &proj, total, rows));
     for (i, &v) in vals.iter().enumerate() {
         proj.row_mut(i).scale_mut(filter(v, lam, cut));
     }
     let vmax = vals.first().copied().unwrap_or(0.0);
     let lambda = tikhonov.then_some((lam, vmax));
-    Ok((vecs * proj, RegressionInfo { lambda, dof }))
+    (vecs * proj, RegressionInfo { lambda, dof })
 }
 
 /// Outcome of the regularised regression.
@@ -259,5 +295,58 @@ impl RegressionInfo {
     pub(crate) fn lambda_rel(&self) -> Option<f64> {
         self.lambda
             .map(|(lam, vmax)| if vmax > 0.0 { lam / vmax } else { 0.0 })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A Gram of rank `rank` < n (both forms see it: the primal one as is, the dual one as a
+    /// kernel) and targets in its range plus `noise`.
+    fn low_rank(n: usize, rank: usize, noise: f64) -> (DMatrix<f64>, DMatrix<f64>) {
+        let x = DMatrix::from_fn(rank, n, |i, j| ((i * 13 + j * 7) % 17) as f64 / 5.0 - 1.6);
+        let coef = DMatrix::from_fn(1, rank, |_, i| (i as f64 * 0.9).cos());
+        let y = DMatrix::from_fn(n, 1, |k, _| {
+            (coef.clone() * x.column(k))[(0, 0)] + noise * ((k * 7 % 11) as f64 - 5.0)
+        });
+        (x.transpose() * x, y)
+    }
+
+    /// Where the shifted solve declines (GCV at the foot of its range on noise-free targets,
+    /// a kernel of rank 30 in 200 windows) and for the minimum-norm solution, the reduced
+    /// form gives the solution of the full eigendecomposition of A: same lambda, same cut.
+    #[test]
+    fn reduced_form_equals_full_eigendecomposition_below_the_shifted_floor() {
+        for (reg, noise) in [(Reg::TikhonovGcv, 0.0), (Reg::None, 0.0), (Reg::None, 0.1)] {
+            let (k, y) = low_rank(200, 30, noise);
+            let total = y.norm_squared();
+            let tri = Tridiagonal::new(&k);
+            let (x, info) =
+                ridge_tridiagonal(&tri, &y, NormalForm::Dual, total, 200.0, reg).unwrap();
+            let (x_full, info_full) =
+                ridge_eig(&k, &y, NormalForm::Dual, total, 200.0, reg).unwrap();
+            if reg == Reg::TikhonovGcv {
+                let rel = info.lambda_rel().unwrap();
+                assert!(
+                    rel < SHIFTED_SOLVE_MIN,
+                    "the shifted solve was not declined: {rel}"
+                );
+            }
+            assert!(
+                (info.dof - info_full.dof).abs() < 1e-6,
+                "{reg:?}: {} {}",
+                info.dof,
+                info_full.dof
+            );
+            // the fitted values K x agree (x itself is fixed only up to the cut's rounding)
+            let (fit, fit_full) = (&k * &x, &k * &x_full);
+            assert!(
+                (&fit - &fit_full).norm() <= 1e-8 * y.norm(),
+                "{reg:?}: {}",
+                (&fit - &fit_full).norm()
+            );
+            assert!((&x - &x_full).norm() <= 1e-6 * x_full.norm(), "{reg:?}");
+        }
     }
 }
