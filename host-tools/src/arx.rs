@@ -441,8 +441,40 @@ pub struct ArxReport {
     pub final_refit: String,
     /// Accumulation precision, "f32" or "f64".
     pub precision: &'static str,
-    /// Per IV pass, the model whose free run gave its instruments, in words (empty for ls).
-    pub instruments_from: Vec<String>,
+    /// Per IV pass, the model whose free run gave its instruments (empty for ls).
+    pub instruments_from: Vec<InstrumentSource>,
+}
+
+/// The model whose free run gave an IV pass its instruments.
+#[derive(Debug, Clone, PartialEq)]
+pub struct InstrumentSource {
+    /// That model, in words (e.g. "the unpenalised least-squares fit").
+    pub model: String,
+    /// Why it stands in for the model meant to give them: that model could not be simulated
+    /// on the training scheduling (the simulation's error in words). None when it is the
+    /// model meant.
+    pub fallback: Option<String>,
+}
+
+/// Serialised as its words ([`core::fmt::Display`]), as the fit record has them.
+impl serde::Serialize for InstrumentSource {
+    fn serialize<S: serde::Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
+        s.collect_str(self)
+    }
+}
+
+impl core::fmt::Display for InstrumentSource {
+    /// The fit record's words: the model, and the reason when it is a fallback.
+    fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
+        match &self.fallback {
+            None => write!(f, "{}", self.model),
+            Some(e) => write!(
+                f,
+                "{} (the model before it cannot be simulated: {e})",
+                self.model
+            ),
+        }
+    }
 }
 
 /// A fitted LPV-ARX model with the scheduling basis it uses and the report.
@@ -1509,9 +1541,12 @@ pub fn fit(
     if unpenalised.as_ref().is_some_and(|m| *m != choice.theta) {
         fallbacks.push((choice.theta.clone(), lasso_ls.to_string()));
     }
-    let mut next_from = match &unpenalised {
-        Some(_) => "the unpenalised least-squares fit".to_string(),
-        None => format!("{lasso_ls} (the unpenalised one is singular)"),
+    let mut next_from = InstrumentSource {
+        model: match &unpenalised {
+            Some(_) => "the unpenalised least-squares fit".to_string(),
+            None => format!("{lasso_ls} (the unpenalised one is singular)"),
+        },
+        fallback: None,
     };
     let mut instruments_from = Vec::new();
     let mut model = unpenalised.unwrap_or(choice.theta.clone());
@@ -1543,8 +1578,10 @@ pub fn fit(
                             scaled(&model, &format!("the estimate of IV pass {iterations}"));
                     }
                     if let Some((m, what)) = fallbacks.pop() {
-                        next_from =
-                            format!("{what} (the model before it cannot be simulated: {e})");
+                        next_from = InstrumentSource {
+                            model: what,
+                            fallback: Some(e.to_string()),
+                        };
                         model = m;
                         continue;
                     }
@@ -1556,7 +1593,7 @@ pub fn fit(
                     break;
                 }
             };
-            instruments_from.push(std::mem::take(&mut next_from));
+            instruments_from.push(next_from.clone());
             discarded = false;
             fallbacks.clear();
             iterations += 1;
@@ -1588,7 +1625,10 @@ pub fn fit(
             model = ch.theta.clone();
             states.push((ch, cv, rule, t, c));
             pick = states.len() - 1;
-            next_from = format!("the estimate of IV pass {iterations}");
+            next_from = InstrumentSource {
+                model: format!("the estimate of IV pass {iterations}"),
+                fallback: None,
+            };
             if same_sup && change <= opts.tol {
                 converged = true;
                 break;
@@ -1966,7 +2006,7 @@ pub fn fit_record(opts: &ArxOptions, fit: &ArxFit, grid: &[f64], files: Value) -
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
     use crate::simulate::{arx_run, Mode};
     use nalgebra::DMatrix;
@@ -2145,7 +2185,7 @@ mod tests {
     /// through white noise on y and on p (ARX 4/4, quadratic basis: over-parametrised, so
     /// least-squares and IV estimates can be unstable where the plant is not); returns the
     /// signals and the noise-free output.
-    fn noisy_first_order(
+    pub(crate) fn noisy_first_order(
         a: (f64, f64),
         noise: (f64, f64),
         n: usize,
@@ -2191,7 +2231,19 @@ mod tests {
             o.estimator = Estimator::Bciv;
             let f = fit(&sig, None, &o).unwrap();
             let from = &f.report.instruments_from;
-            assert!(from.iter().any(|w| w.starts_with(what)), "{from:?}");
+            assert!(
+                from.iter().any(|w| w.to_string().starts_with(what)),
+                "{from:?}"
+            );
+            // the record's words and the typed reason say the same
+            for w in from {
+                let text = w.to_string();
+                assert_eq!(
+                    w.fallback.is_some(),
+                    text.contains("cannot be simulated"),
+                    "{text}"
+                );
+            }
             assert_eq!(from.len(), f.report.iterations);
             // the model the fit returns runs free through its training record
             let basis = DMatrix::from_fn(n, 3, |k, j| sig.p[(k, 0)].powi(j as i32));

@@ -236,9 +236,9 @@ fn print_summary(
             }
         )?;
         // a pass whose model could not be simulated took its instruments from a fallback
-        for (k, what) in r.instruments_from.iter().enumerate() {
-            if what.contains("cannot be simulated") {
-                writeln!(out, "    pass {}: instruments from {what}", k + 1)?;
+        for (k, from) in r.instruments_from.iter().enumerate() {
+            if from.fallback.is_some() {
+                writeln!(out, "    pass {}: instruments from {from}", k + 1)?;
             }
         }
     }
@@ -320,4 +320,50 @@ fn print_summary(
         )?;
     }
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use crate::model::ModelFile;
+
+    /// The human summary names each IV pass whose instruments came from a fallback model, in
+    /// the fit record's words (the arx unit test's plant whose first IV estimate cannot be
+    /// simulated: `arx::tests::an_iv_pass_whose_model_cannot_be_simulated_...`).
+    #[test]
+    fn the_summary_names_the_passes_whose_instruments_came_from_a_fallback() {
+        let (sig, _) = crate::arx::tests::noisy_first_order((0.8, 0.15), (0.5, 0.5), 300, 17);
+        let dir = tempfile::tempdir().unwrap();
+        let (t, m) = (dir.path().join("train.csv"), dir.path().join("m.json"));
+        crate::data::Dataset::from_signals(&sig, "train.csv")
+            .write_csv(&t)
+            .unwrap();
+        let mut out = Vec::new();
+        let args = [
+            "lpvid", "arx", "--na", "4", "--nb", "4", "--ng", "2", "--train",
+        ];
+        let args = args.iter().map(std::ffi::OsString::from);
+        let files = [t.as_os_str(), "--out".as_ref(), m.as_os_str()].map(|a| a.to_owned());
+        crate::cli::run(args.chain(files), &mut out).unwrap();
+        let text = String::from_utf8(out).unwrap();
+        let printed: Vec<&str> = text
+            .lines()
+            .filter_map(|l| l.trim_start().split_once(": instruments from "))
+            .map(|(_, what)| what)
+            .collect();
+        let record = ModelFile::read(&m).unwrap().fit["instruments_from"].clone();
+        let fallbacks: Vec<&str> = record
+            .as_array()
+            .unwrap()
+            .iter()
+            .filter_map(|w| w.as_str())
+            .filter(|w| w.contains("cannot be simulated"))
+            .collect();
+        assert_eq!(printed, fallbacks, "{text}");
+        assert!(
+            printed.iter().any(|w| w.starts_with(
+                "the estimate of IV pass 1 with its frozen poles scaled by 0.8 (the model before it cannot be simulated"
+            )),
+            "{text}"
+        );
+    }
 }
