@@ -22,30 +22,41 @@ pub enum LinalgError {
 /// matching orthonormal eigenvectors as columns.
 pub fn sym_eig(a: &DMatrix<f64>) -> Result<(Vec<f64>, DMatrix<f64>), LinalgError> {
     let n = a.nrows();
+    let m = faer::Mat::<f64>::from_fn(n, n, |i, j| 0.5 * (a[(i, j)] + a[(j, i)]));
+    faer_evd_descending(n, |s, u, par, stack| {
+        faer::linalg::evd::self_adjoint_evd(m.as_ref(), s, Some(u), par, stack, Default::default())
+    })
+}
+
+/// Runs one of faer's symmetric eigendecomposition drivers of dimension `n` (`evd`: given
+/// the eigenvalue and eigenvector storage, the parallelism and the workspace) and returns
+/// its result in descending order. faer's `self_adjoint_eigen` asks the global parallelism,
+/// which starts the thread pool even for a 4 x 4: the drivers get that of [`par_for`].
+fn faer_evd_descending(
+    n: usize,
+    evd: impl FnOnce(
+        faer::diag::DiagMut<'_, f64>,
+        faer::MatMut<'_, f64>,
+        faer::Par,
+        &mut faer::dyn_stack::MemStack,
+    ) -> Result<(), faer::linalg::evd::EvdError>,
+) -> Result<(Vec<f64>, DMatrix<f64>), LinalgError> {
+    use faer::dyn_stack::{MemBuffer, MemStack};
+    use faer::linalg::evd::{self_adjoint_evd_scratch, ComputeEigenvectors};
     if n == 0 {
         return Ok((Vec::new(), DMatrix::zeros(0, 0)));
     }
-    use faer::dyn_stack::{MemBuffer, MemStack};
-    use faer::linalg::evd;
-    let m = faer::Mat::<f64>::from_fn(n, n, |i, j| 0.5 * (a[(i, j)] + a[(j, i)]));
-    // faer's `self_adjoint_eigen` asks the global parallelism, which starts the thread pool
-    // even for a 4 x 4: the driver with the parallelism of [`par_for`] instead
     let par = par_for(n);
     let mut u = faer::Mat::<f64>::zeros(n, n);
     let mut s = faer::diag::Diag::<f64>::zeros(n);
-    let scratch = evd::self_adjoint_evd_scratch::<f64>(
-        n,
-        evd::ComputeEigenvectors::Yes,
-        par,
-        Default::default(),
-    );
-    evd::self_adjoint_evd(
-        m.as_ref(),
+    // the dense driver's workspace (it covers the tridiagonal one's too)
+    let scratch =
+        self_adjoint_evd_scratch::<f64>(n, ComputeEigenvectors::Yes, par, Default::default());
+    evd(
         s.as_mut(),
-        Some(u.as_mut()),
+        u.as_mut(),
         par,
         MemStack::new(&mut MemBuffer::new(scratch)),
-        Default::default(),
     )
     .map_err(|e| LinalgError::Eigen(format!("{e:?}")))?;
     let vals: Vec<f64> = (0..n).rev().map(|i| s[i]).collect();
@@ -870,38 +881,19 @@ impl Tridiagonal {
     /// reducing A again or turning all n eigenvectors back into A's coordinates: a solution
     /// of a few columns goes back by [`Tridiagonal::from_tridiagonal`].
     pub fn eigen(&self) -> Result<(Vec<f64>, DMatrix<f64>), LinalgError> {
-        use faer::dyn_stack::{MemBuffer, MemStack};
-        use faer::linalg::evd;
-        let n = self.n;
-        if n == 0 {
-            return Ok((Vec::new(), DMatrix::zeros(0, 0)));
-        }
-        let par = par_for(n);
         let mut sub = self.sub.clone();
         sub.push(0.0);
-        let mut s = faer::diag::Diag::<f64>::zeros(n);
-        let mut u = faer::Mat::<f64>::zeros(n, n);
-        // the dense driver's workspace covers its tridiagonal stage
-        let scratch = evd::self_adjoint_evd_scratch::<f64>(
-            n,
-            evd::ComputeEigenvectors::Yes,
-            par,
-            Default::default(),
-        );
-        evd::tridiagonal_self_adjoint_evd(
-            faer::ColRef::from_slice(&self.diag).as_diagonal(),
-            faer::ColRef::from_slice(&sub).as_diagonal(),
-            s.as_mut(),
-            Some(u.as_mut()),
-            par,
-            MemStack::new(&mut MemBuffer::new(scratch)),
-            Default::default(),
-        )
-        .map_err(|e| LinalgError::Eigen(format!("{e:?}")))?;
-        // faer's order is ascending
-        let vals = (0..n).rev().map(|i| s[i]).collect();
-        let vecs = DMatrix::from_fn(n, n, |i, j| u[(i, n - 1 - j)]);
-        Ok((vals, vecs))
+        faer_evd_descending(self.n, |s, u, par, stack| {
+            faer::linalg::evd::tridiagonal_self_adjoint_evd(
+                faer::ColRef::from_slice(&self.diag).as_diagonal(),
+                faer::ColRef::from_slice(&sub).as_diagonal(),
+                s,
+                Some(u),
+                par,
+                stack,
+                Default::default(),
+            )
+        })
     }
 
     /// T + lam I = L D L^T (unit lower bidiagonal L), or None when it is not numerically
