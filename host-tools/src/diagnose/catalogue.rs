@@ -588,6 +588,10 @@ impl Catalogue<'_, '_> {
     /// plain scheduling column re-estimated with its sensor noise taken as the white-noise floor
     /// of its spectrum ([`noise_floor`]: the sensor noise of a slowly varying p, an upper bound
     /// when p itself varies fast, which lets the outputs move p^ further from the measurement).
+    /// Two variants: each sample of p tied to its measurement alone, and p moving smoothly
+    /// ([`super::latent::SmoothnessPrior`]). The second takes a slow p's fast part for sensor
+    /// noise, which is right for a slowly wandering p and wrong where the true p has a white
+    /// part of its own, which only the outputs can tell; the held-out error chooses.
     fn latent_scheduling(&mut self, sched_plain: &[Factor]) {
         let ctx = self.ctx;
         let columns: Vec<(String, f64)> = sched_plain
@@ -606,25 +610,33 @@ impl Catalogue<'_, '_> {
             .map(|(c, v)| format!("{c} (sensor noise std {:.4})", v.sqrt()))
             .collect::<Vec<_>>()
             .join(", ");
-        let mut sp = ctx.spec.clone();
-        sp.latent = Some(LatentSpec {
-            columns,
-            rounds: LATENT_ROUNDS,
-        });
         // each round's structure refined by output error, and judged against the model's
         // structure refined the same way on the measured p (`push`): refitted by PBSID alone,
         // the rounds drifted away on about a third of the family's plants (1000: 0.87x after
         // one round, 0.71x after four), refined they are descent steps on one cost, output
         // error plus the sensor-noise prior (1000: 3.35x after one, 4.24x after four; the
         // refined null 2.89x)
-        sp.refined = true;
-        self.push(
-            Effect::SchedulingNoise,
-            format!(
-                "the structure refitted on the scheduling sequence the outputs say the plant saw: {words} re-estimated (MAP given the model's free run, up to {LATENT_ROUNDS} rounds of estimate and refit refined by output error)"
-            ),
-            sp,
-        );
+        for smooth in [false, true] {
+            let mut sp = ctx.spec.clone();
+            sp.latent = Some(LatentSpec {
+                columns: columns.clone(),
+                rounds: LATENT_ROUNDS,
+                smooth,
+            });
+            sp.refined = true;
+            let prior = if smooth {
+                ", each moving smoothly (a white second difference, its variance fitted to the measured spectrum)"
+            } else {
+                ""
+            };
+            self.push(
+                Effect::SchedulingNoise,
+                format!(
+                    "the structure refitted on the scheduling sequence the outputs say the plant saw: {words} re-estimated{prior} (MAP given the model's free run, up to {LATENT_ROUNDS} rounds of estimate and refit refined by output error)"
+                ),
+                sp,
+            );
+        }
     }
 
     /// periodic-disturbance: the harmonic series of the training residual's lines as sin/cos

@@ -114,6 +114,10 @@ pub struct LatentSpec {
     pub columns: Vec<(String, f64)>,
     /// Most rounds of estimate-and-refit.
     pub rounds: usize,
+    /// Each column's true signal taken to move smoothly ([`super::latent::SmoothnessPrior`],
+    /// fitted to the training column's spectrum); false: each sample tied to its measurement
+    /// alone.
+    pub smooth: bool,
 }
 
 /// The noise model of a [`Spec`].
@@ -472,7 +476,7 @@ pub fn fit_latent(
     train: &Dataset,
     base_fit: &Value,
 ) -> Result<Fitted, RefitError> {
-    use super::latent::{map_scheduling, NoisyColumn};
+    use super::latent::{map_scheduling, NoisyColumn, SmoothnessPrior};
     let inner = Spec {
         latent: None,
         ..spec.clone()
@@ -489,6 +493,11 @@ pub fn fit_latent(
                 .map(|col| NoisyColumn {
                     col,
                     noise_var: *var,
+                    smooth: if latent.smooth {
+                        SmoothnessPrior::from_noisy(&train.cols[col], *var)
+                    } else {
+                        None
+                    },
                 })
                 .ok_or_else(|| {
                     RefitError::Unsupported(format!("no scheduling column {name} to re-estimate"))
@@ -550,6 +559,7 @@ pub fn fit_latent(
                 "method": "MAP sequence of the scheduling columns given the model's free run, the structure refitted on it (diagnose: scheduling-noise)",
                 "columns": latent.columns.iter().map(|(c, _)| c.clone()).collect::<Vec<_>>(),
                 "sensor_noise_std": latent.columns.iter().map(|(_, v)| v.sqrt()).collect::<Vec<_>>(),
+                "smoothness_prior_std": cols.iter().map(|c| c.smooth.map(|s| s.second_difference_var.sqrt())).collect::<Vec<_>>(),
                 "rounds": rounds,
                 "memory_samples": est.memory,
                 "moved_rms": est.moved_rms,
