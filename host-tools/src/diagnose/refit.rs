@@ -463,11 +463,14 @@ pub fn fit_spec(spec: &Spec, train: &Dataset, base_fit: &Value) -> Result<Fitted
 
 /// Scheduling-noise in the state-space structure (issue 14): the structure fitted on the
 /// scheduling sequence a noisy sensor hid ([`super::latent`]). The structure is fitted on the
-/// measured p~ (refined by output error when `spec.refined`, as the catalogue's variant is:
-/// then each round lowers one cost, the free-run error plus the sensor-noise prior), then for up to `rounds` rounds the MAP sequence p^ of the noisy columns given
-/// that model's free run (its output-error variance from the training data) is estimated and
-/// the structure refitted on p^; the rounds stop early when a round changes p^ by less than 1 % of
-/// the first round's move. The model reads the plain columns: it describes the plant's response to the
+/// measured p~ (refined by output error when `spec.refined`, as the catalogue's variant is),
+/// then for up to `rounds` rounds the MAP sequence p^ of the noisy columns given that model's
+/// free run (its output-error variance from the training data; with `latent.smooth` the
+/// smoothness prior fitted to each column) is estimated from p~ and the structure refitted on
+/// p^; the rounds stop early when a round changes p^ by less than 1 % of the first round's
+/// move. The rounds are not descent steps on one objective (each starts again from p~ and
+/// from PBSID): their held-out error can rise after the first (docs/bench-diagnose.md, "A
+/// smoothness prior on the latent scheduling sequence"). The model reads the plain columns: it describes the plant's response to the
 /// true p (as the BC-IV path's LPV-ARX model does), so it is judged on held-out data as any
 /// other refit. The `fit` record gains `scheduling_estimate`.
 pub fn fit_latent(
