@@ -613,9 +613,9 @@ impl Catalogue<'_, '_> {
         // each round's structure refined by output error, and judged against the model's
         // structure refined the same way on the measured p (`push`): refitted by PBSID alone,
         // the rounds drifted away on about a third of the family's plants (1000: 0.87x after
-        // one round, 0.71x after four), refined they are descent steps on one cost, output
-        // error plus the sensor-noise prior (1000: 3.35x after one, 4.24x after four; the
-        // refined null 2.89x)
+        // one round, 0.71x after four); refined they held there (1000: 3.35x after one,
+        // 4.24x after four; the refined null 2.89x), though they are not descent steps on one
+        // cost (refit::fit_latent)
         for smooth in [false, true] {
             let mut sp = ctx.spec.clone();
             sp.latent = Some(LatentSpec {

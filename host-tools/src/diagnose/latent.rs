@@ -100,6 +100,11 @@ impl SmoothnessPrior {
     }
 }
 
+/// p(k) - 2 p(k-1) + p(k-2) (k >= 2): what [`SmoothnessPrior`] takes as white.
+fn second_difference(p: &[f64], k: usize) -> f64 {
+    p[k] - 2.0 * p[k - 1] + p[k - 2]
+}
+
 /// What [`map_scheduling`] did.
 #[derive(Debug, Clone)]
 pub struct MapEstimate {
@@ -257,9 +262,7 @@ pub fn map_scheduling(
             }
             if let Some(sm) = &c.smooth {
                 let p = &d.cols[c.col];
-                f += (2..n)
-                    .map(|k| (p[k] - 2.0 * p[k - 1] + p[k - 2]).powi(2))
-                    .sum::<f64>()
+                f += (2..n).map(|k| second_difference(p, k).powi(2)).sum::<f64>()
                     / sm.second_difference_var;
             }
         }
@@ -330,7 +333,7 @@ pub fn map_scheduling(
                 let v = sm.second_difference_var;
                 let p = &ds.cols[c.col];
                 for k in 2..n {
-                    let wk = (p[k] - 2.0 * p[k - 1] + p[k - 2]) / v;
+                    let wk = second_difference(p, k) / v;
                     for (i, ci_) in coef.iter().enumerate() {
                         let qi = (k - i) * s + ci;
                         g[qi] -= ci_ * wk;
@@ -422,8 +425,13 @@ mod tests {
     /// The plant's record: u, the output with 1 % noise, the true p and p with a white sensor
     /// noise of std `sensor`.
     fn record(n: usize, sensor: f64) -> (Dataset, Vec<f64>) {
+        record_of(uniform(2, n), sensor)
+    }
+
+    /// [`record`] with the true scheduling sequence `p` given.
+    fn record_of(p: Vec<f64>, sensor: f64) -> (Dataset, Vec<f64>) {
+        let n = p.len();
         let u = uniform(1, n);
-        let p = uniform(2, n);
         let e = uniform(3, n);
         let eta = uniform(4, n);
         let mut x = 0.0;
@@ -479,25 +487,10 @@ mod tests {
     /// A slowly wandering p (period 150 samples) behind a white sensor noise of std
     /// `sensor`, the plant's record as [`record`] gives it otherwise.
     fn slow_record(n: usize, sensor: f64) -> (Dataset, Vec<f64>) {
-        let (mut ds, _) = record(n, 0.0);
-        let p: Vec<f64> = (0..n)
+        let p = (0..n)
             .map(|k| 0.8 * (2.0 * std::f64::consts::PI * k as f64 / 150.0).sin())
             .collect();
-        let u = ds.cols[0].clone();
-        let e = uniform(3, n);
-        let eta = uniform(4, n);
-        let mut x = 0.0;
-        ds.cols[1] = (0..n)
-            .map(|k| {
-                let yk = x + 0.01 * 3f64.sqrt() * e[k];
-                x = (0.5 + 0.4 * p[k]) * x + (1.0 + 0.8 * p[k]) * u[k];
-                yk
-            })
-            .collect();
-        ds.cols[2] = (0..n)
-            .map(|k| p[k] + sensor * 3f64.sqrt() * eta[k])
-            .collect();
-        (ds, p)
+        record_of(p, sensor)
     }
 
     #[test]
@@ -506,7 +499,7 @@ mod tests {
         // a slow p: its second difference is tiny beside the sensor's (6 x 0.04)
         let slow = SmoothnessPrior::from_noisy(&ds.cols[2], 0.04).unwrap();
         let exact: f64 = (2..p.len())
-            .map(|k| (p[k] - 2.0 * p[k - 1] + p[k - 2]).powi(2))
+            .map(|k| second_difference(&p, k).powi(2))
             .sum::<f64>()
             / (p.len() - 2) as f64;
         assert!(
