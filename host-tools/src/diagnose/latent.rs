@@ -105,6 +105,42 @@ fn second_difference(p: &[f64], k: usize) -> f64 {
     p[k] - 2.0 * p[k - 1] + p[k - 2]
 }
 
+/// The joint negative log-likelihood (times 2) of a model's free run on a scheduling sequence
+/// and of that sequence given the measurement: sum_l N ln(mse_l) (each output's error variance
+/// concentrated out) + the sequence's terms of the module doc's objective (sensor noise and,
+/// where a column has one, its smoothness prior). `y`, `yh` are the measured outputs and the
+/// free run on `estimate` (the columns of `cols`, in order), `measured` holds p~. What
+/// [`super::refit::fit_latent`] compares its rounds by: training data only, one scale for
+/// every round (the MAP step's own weights 1 / sigma_l^2 change from round to round).
+pub fn joint_objective(
+    y: &DMatrix<f64>,
+    yh: &DMatrix<f64>,
+    cols: &[NoisyColumn],
+    measured: &Dataset,
+    estimate: &[Vec<f64>],
+) -> f64 {
+    let n = y.nrows();
+    let mut f = 0.0;
+    for j in 0..y.ncols() {
+        let mse = (0..n)
+            .map(|i| (y[(i, j)] - yh[(i, j)]).powi(2))
+            .sum::<f64>()
+            / n.max(1) as f64;
+        f += n as f64 * mse.max(1e-300).ln();
+    }
+    for (c, p) in cols.iter().zip(estimate) {
+        let pm = &measured.cols[c.col];
+        f += p.iter().zip(pm).map(|(a, b)| (a - b).powi(2)).sum::<f64>() / c.noise_var;
+        if let Some(sm) = &c.smooth {
+            f += (2..p.len())
+                .map(|k| second_difference(p, k).powi(2))
+                .sum::<f64>()
+                / sm.second_difference_var;
+        }
+    }
+    f
+}
+
 /// What [`map_scheduling`] did.
 #[derive(Debug, Clone)]
 pub struct MapEstimate {
@@ -228,6 +264,19 @@ pub fn map_scheduling(
     output_var: &[f64],
     max_steps: usize,
 ) -> Option<MapEstimate> {
+    map_scheduling_from(model, train, cols, output_var, max_steps, None)
+}
+
+/// [`map_scheduling`] with the Gauss-Newton steps started from `start` (the columns of
+/// `cols`, in order) instead of the measurement p~; the objective is the same.
+pub fn map_scheduling_from(
+    model: &ModelFile,
+    train: &Dataset,
+    cols: &[NoisyColumn],
+    output_var: &[f64],
+    max_steps: usize,
+    start: Option<&[Vec<f64>]>,
+) -> Option<MapEstimate> {
     let n = train.len();
     let s = cols.len();
     if n < 8
@@ -239,6 +288,14 @@ pub fn map_scheduling(
         return None;
     }
     let mut ds = train.clone();
+    if let Some(start) = start {
+        if start.len() != s || start.iter().any(|c| c.len() != n) {
+            return None;
+        }
+        for (c, p) in cols.iter().zip(start) {
+            ds.cols[c.col] = p.clone();
+        }
+    }
     let (y, mut y0) = measured_and_free_run(model, &ds)?;
     let l = y.ncols();
     if output_var.len() != l || output_var.iter().any(|v| v.is_nan() || *v <= 0.0) {
@@ -538,6 +595,49 @@ mod tests {
         assert!(
             w < 0.2 * a && a < 0.5 * before,
             "{before} -> {a} (white), {w} (smooth)"
+        );
+    }
+
+    #[test]
+    fn the_joint_objective_ranks_the_true_sequence_first_and_a_warm_start_keeps_the_map() {
+        let model = ModelFile::from_json_str("plant.json", PLANT).unwrap();
+        let (ds, p) = record(600, 0.2);
+        let col = [NoisyColumn {
+            col: 2,
+            noise_var: 0.04,
+            smooth: None,
+        }];
+        let score = |seq: &[f64]| {
+            let mut d = ds.clone();
+            d.cols[2] = seq.to_vec();
+            let (y, yh) = measured_and_free_run(&model, &d).unwrap();
+            joint_objective(&y, &yh, &col, &ds, &[seq.to_vec()])
+        };
+        // the measurement itself: no sensor term, the output error of a p off by 0.2 RMS; the
+        // true p: a sensor term of about N (600) and the output error of the 1 % noise alone
+        let (at_truth, at_measured) = (score(&p), score(&ds.cols[2]));
+        assert!(
+            at_truth < at_measured - 1000.0,
+            "{at_truth} vs {at_measured}"
+        );
+        // the MAP estimate lies between them in p and below both in the objective's output part
+        let est = map_scheduling(&model, &ds, &col, &[1e-4], 6).unwrap();
+        assert!(
+            score(&est.columns[0]) < at_measured,
+            "{}",
+            score(&est.columns[0])
+        );
+        // warm-started at its own result, the Gauss-Newton steps barely move it
+        let again =
+            map_scheduling_from(&model, &ds, &col, &[1e-4], 6, Some(&est.columns[..])).unwrap();
+        assert!(
+            rms(&again.columns[0], &est.columns[0]) < 0.05 * rms(&est.columns[0], &ds.cols[2]),
+            "moved {}",
+            rms(&again.columns[0], &est.columns[0])
+        );
+        // a start of the wrong shape is refused
+        assert!(
+            map_scheduling_from(&model, &ds, &col, &[1e-4], 6, Some(&[vec![0.0; 5]])).is_none()
         );
     }
 

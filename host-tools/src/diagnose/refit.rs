@@ -466,11 +466,14 @@ pub fn fit_spec(spec: &Spec, train: &Dataset, base_fit: &Value) -> Result<Fitted
 /// measured p~ (refined by output error when `spec.refined`, as the catalogue's variant is),
 /// then for up to `rounds` rounds the MAP sequence p^ of the noisy columns given that model's
 /// free run (its output-error variance from the training data; with `latent.smooth` the
-/// smoothness prior fitted to each column) is estimated from p~ and the structure refitted on
-/// p^; the rounds stop early when a round changes p^ by less than 1 % of the first round's
-/// move. The rounds are not descent steps on one objective (each starts again from p~ and
-/// from PBSID): their held-out error can rise after the first (docs/bench-diagnose.md, "A
-/// smoothness prior on the latent scheduling sequence"). The model reads the plain columns: it describes the plant's response to the
+/// smoothness prior fitted to each column) is estimated, its Gauss-Newton steps started from
+/// the sequence the model was fitted on (p~ in the first round), and the structure refitted
+/// on p^; the rounds stop early when a round changes p^ by less than 1 % of the first round's
+/// move. The refits start again from PBSID, so the rounds are not descent steps on one
+/// objective and their held-out error can rise after the first (docs/bench-diagnose.md, "A
+/// smoothness prior on the latent scheduling sequence"): the round kept is the one whose
+/// refit and sequence have the lowest joint objective on the training data
+/// ([`super::latent::joint_objective`]). The model reads the plain columns: it describes the plant's response to the
 /// true p (as the BC-IV path's LPV-ARX model does), so it is judged on held-out data as any
 /// other refit. The `fit` record gains `scheduling_estimate`.
 pub fn fit_latent(
@@ -479,7 +482,7 @@ pub fn fit_latent(
     train: &Dataset,
     base_fit: &Value,
 ) -> Result<Fitted, RefitError> {
-    use super::latent::{map_scheduling, NoisyColumn, SmoothnessPrior};
+    use super::latent::{map_scheduling_from, NoisyColumn, SmoothnessPrior};
     let inner = Spec {
         latent: None,
         ..spec.clone()
@@ -511,6 +514,8 @@ pub fn fit_latent(
     let mut last: Option<super::latent::MapEstimate> = None;
     let mut first_move: Option<f64> = None;
     let mut rounds = 0;
+    // the round of the lowest joint objective: (objective, round, fit, estimate)
+    let mut best: Option<(f64, usize, Fitted, super::latent::MapEstimate)> = None;
     for _ in 0..latent.rounds {
         let (y, yh) = crate::simulate::simulate(&fitted.model, train, Mode::FreeRun)?;
         let n = y.nrows().max(1) as f64;
@@ -524,7 +529,9 @@ pub fn fit_latent(
                     .max(1e-300)
             })
             .collect();
-        let Some(est) = map_scheduling(&fitted.model, train, &cols, &var, 6) else {
+        // warm: from the sequence the model was fitted on (the measurement in the first round)
+        let start = last.as_ref().map(|e| &e.columns[..]);
+        let Some(est) = map_scheduling_from(&fitted.model, train, &cols, &var, 6, start) else {
             if last.is_none() {
                 return Err(RefitError::Unsupported(
                     "the scheduling sequence could not be estimated from the outputs (the free run fails, p does not move it, or the record is too long for the band)".into(),
@@ -547,6 +554,14 @@ pub fn fit_latent(
         }
         fitted = fit_spec(&inner, &data, base_fit)?;
         rounds += 1;
+        // this round's pair (the refit, the sequence it was fitted on) by the joint objective
+        // on the training data; a refit whose free run fails on its own sequence is not kept
+        if let Ok((y1, yh1)) = crate::simulate::simulate(&fitted.model, &data, Mode::FreeRun) {
+            let j = super::latent::joint_objective(&y1, &yh1, &cols, train, &est.columns);
+            if j.is_finite() && best.as_ref().is_none_or(|b| j < b.0) {
+                best = Some((j, rounds, fitted.clone(), est.clone()));
+            }
+        }
         let moved = est.moved_rms.iter().map(|v| v * v).sum::<f64>().sqrt();
         first_move.get_or_insert(moved);
         last = Some(est);
@@ -554,7 +569,11 @@ pub fn fit_latent(
             break;
         }
     }
-    let est = last.expect("at least one round ran");
+    let Some((objective, chosen, mut fitted, est)) = best else {
+        return Err(RefitError::Unsupported(
+            "no round's refit could be simulated on its own scheduling sequence".into(),
+        ));
+    };
     if let Value::Object(rec) = &mut fitted.model.fit {
         rec.insert(
             "scheduling_estimate".into(),
@@ -564,6 +583,8 @@ pub fn fit_latent(
                 "sensor_noise_std": latent.columns.iter().map(|(_, v)| v.sqrt()).collect::<Vec<_>>(),
                 "smoothness_prior_std": cols.iter().map(|c| c.smooth.map(|s| s.second_difference_var.sqrt())).collect::<Vec<_>>(),
                 "rounds": rounds,
+                "chosen_round": chosen,
+                "joint_objective": objective,
                 "memory_samples": est.memory,
                 "moved_rms": est.moved_rms,
             }),
