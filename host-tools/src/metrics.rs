@@ -66,6 +66,20 @@ pub fn bfr_per_output(y: &DMatrix<f64>, yhat: &DMatrix<f64>, skip: usize) -> Vec
     per_output(y, yhat, skip, bfr)
 }
 
+/// Mean square of `y - yhat` (0 for empty slices).
+pub fn mse(y: &[f64], yhat: &[f64]) -> f64 {
+    y.iter()
+        .zip(yhat)
+        .map(|(a, b)| (a - b) * (a - b))
+        .sum::<f64>()
+        / y.len().max(1) as f64
+}
+
+/// Per-output mean square error, as [`vaf_per_output`].
+pub fn mse_per_output(y: &DMatrix<f64>, yhat: &DMatrix<f64>, skip: usize) -> Vec<f64> {
+    per_output(y, yhat, skip, mse)
+}
+
 fn per_output(
     y: &DMatrix<f64>,
     yhat: &DMatrix<f64>,
@@ -104,5 +118,15 @@ mod tests {
         assert!((bfr(&y, &yh) - expect).abs() < 1e-12);
         assert_eq!(vaf(&y, &[0.0, 0.0, f64::NAN, 0.0]), 0.0);
         assert_eq!(vaf(&y, &[-10.0, 10.0, -10.0, 10.0]), 0.0);
+    }
+
+    #[test]
+    fn mse_values() {
+        assert_eq!(mse(&[1.0, 2.0], &[0.0, 0.0]), 2.5);
+        assert_eq!(mse(&[], &[]), 0.0);
+        let y = DMatrix::from_row_slice(3, 2, &[9.0, 1.0, 1.0, 2.0, 2.0, 3.0]);
+        let yh = DMatrix::from_row_slice(3, 2, &[0.0, 0.0, 0.0, 0.0, 0.0, 0.0]);
+        assert_eq!(mse_per_output(&y, &yh, 1), vec![2.5, 6.5]);
+        assert_eq!(mse_per_output(&y, &yh, 0), vec![86.0 / 3.0, 14.0 / 3.0]);
     }
 }

@@ -119,15 +119,11 @@ pub fn joint_objective(
     measured: &Dataset,
     estimate: &[Vec<f64>],
 ) -> f64 {
-    let n = y.nrows();
-    let mut f = 0.0;
-    for j in 0..y.ncols() {
-        let mse = (0..n)
-            .map(|i| (y[(i, j)] - yh[(i, j)]).powi(2))
-            .sum::<f64>()
-            / n.max(1) as f64;
-        f += n as f64 * mse.max(1e-300).ln();
-    }
+    let n = y.nrows() as f64;
+    let mut f: f64 = crate::metrics::mse_per_output(y, yh, 0)
+        .iter()
+        .map(|m| n * m.max(1e-300).ln())
+        .sum();
     for (c, p) in cols.iter().zip(estimate) {
         let pm = &measured.cols[c.col];
         f += p.iter().zip(pm).map(|(a, b)| (a - b).powi(2)).sum::<f64>() / c.noise_var;

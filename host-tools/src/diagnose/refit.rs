@@ -519,12 +519,10 @@ pub fn fit_latent(
     for _ in 0..latent.rounds {
         let (y, yh) = crate::simulate::simulate(&fitted.model, train, Mode::FreeRun)?;
         let n = y.nrows().max(1) as f64;
-        let var: Vec<f64> = (0..y.ncols())
-            .map(|j| {
-                let v = (0..y.nrows())
-                    .map(|i| (y[(i, j)] - yh[(i, j)]).powi(2))
-                    .sum::<f64>()
-                    / n;
+        let var: Vec<f64> = crate::metrics::mse_per_output(&y, &yh, 0)
+            .into_iter()
+            .enumerate()
+            .map(|(j, v)| {
                 v.max(1e-12 * y.column(j).iter().map(|a| a * a).sum::<f64>() / n)
                     .max(1e-300)
             })
