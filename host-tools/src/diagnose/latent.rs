@@ -125,16 +125,23 @@ pub fn joint_objective(
         .map(|m| n * m.max(1e-300).ln())
         .sum();
     for (c, p) in cols.iter().zip(estimate) {
-        let pm = &measured.cols[c.col];
-        f += p.iter().zip(pm).map(|(a, b)| (a - b).powi(2)).sum::<f64>() / c.noise_var;
-        if let Some(sm) = &c.smooth {
-            f += (2..p.len())
-                .map(|k| second_difference(p, k).powi(2))
-                .sum::<f64>()
-                / sm.second_difference_var;
-        }
+        add_sequence_terms(&mut f, c, p, &measured.cols[c.col]);
     }
     f
+}
+
+/// Add a column's terms of the module doc's objective to `f`: sum_k (p(k) - p~(k))^2 / s^2
+/// and, with a smoothness prior, sum_k (second difference)^2 / v.
+fn add_sequence_terms(f: &mut f64, c: &NoisyColumn, p: &[f64], measured: &[f64]) {
+    for (a, b) in p.iter().zip(measured) {
+        *f += (a - b).powi(2) / c.noise_var;
+    }
+    if let Some(sm) = &c.smooth {
+        *f += (2..p.len())
+            .map(|k| second_difference(p, k).powi(2))
+            .sum::<f64>()
+            / sm.second_difference_var;
+    }
 }
 
 /// What [`map_scheduling`] did.
@@ -250,22 +257,11 @@ fn band_solve(l: &[Vec<f64>], b: usize, g: &mut [f64]) {
 
 /// The MAP scheduling sequence of the module doc: `cols` of `train` re-estimated from the
 /// outputs of `model`, `output_var` the output-error variance per output (sigma_l^2), at most
-/// `max_steps` Gauss-Newton steps (each with a halving line search on the objective). None
-/// when the model's free run fails, p does not move its output, or the band would exceed
-/// [`MAX_BAND_ENTRIES`].
+/// `max_steps` Gauss-Newton steps (each with a halving line search on the objective), started
+/// from `start` (the columns of `cols`, in order; None: from the measurement p~). None when
+/// the model's free run fails, p does not move its output, `start` has the wrong shape, or the
+/// band would exceed [`MAX_BAND_ENTRIES`].
 pub fn map_scheduling(
-    model: &ModelFile,
-    train: &Dataset,
-    cols: &[NoisyColumn],
-    output_var: &[f64],
-    max_steps: usize,
-) -> Option<MapEstimate> {
-    map_scheduling_from(model, train, cols, output_var, max_steps, None)
-}
-
-/// [`map_scheduling`] with the Gauss-Newton steps started from `start` (the columns of
-/// `cols`, in order) instead of the measurement p~; the objective is the same.
-pub fn map_scheduling_from(
     model: &ModelFile,
     train: &Dataset,
     cols: &[NoisyColumn],
@@ -310,14 +306,7 @@ pub fn map_scheduling_from(
             }
         }
         for c in cols {
-            for k in 0..n {
-                f += (d.cols[c.col][k] - train.cols[c.col][k]).powi(2) / c.noise_var;
-            }
-            if let Some(sm) = &c.smooth {
-                let p = &d.cols[c.col];
-                f += (2..n).map(|k| second_difference(p, k).powi(2)).sum::<f64>()
-                    / sm.second_difference_var;
-            }
+            add_sequence_terms(&mut f, c, &d.cols[c.col], &train.cols[c.col]);
         }
         f
     };
@@ -520,7 +509,7 @@ mod tests {
             noise_var: 0.04,
             smooth: None,
         }];
-        let est = map_scheduling(&model, &ds, &col, &[1e-4], 6).unwrap();
+        let est = map_scheduling(&model, &ds, &col, &[1e-4], 6, None).unwrap();
         let after = rms(&est.columns[0], &p);
         // the sensor noise is 0.2 RMS; the outputs (1 % noise) locate p(k) wherever x or u is
         // not small (measured: 0.20 -> 0.068)
@@ -533,7 +522,7 @@ mod tests {
             noise_var: 1e-8,
             smooth: None,
         }];
-        let kept = map_scheduling(&model, &ds, &tight, &[1e-4], 6).unwrap();
+        let kept = map_scheduling(&model, &ds, &tight, &[1e-4], 6, None).unwrap();
         assert!(rms(&kept.columns[0], &ds.cols[2]) < 1e-3);
     }
 
@@ -584,8 +573,8 @@ mod tests {
             ..white
         };
         assert!(smooth.smooth.is_some());
-        let alone = map_scheduling(&model, &ds, &[white], &[1e-4], 6).unwrap();
-        let with = map_scheduling(&model, &ds, &[smooth], &[1e-4], 6).unwrap();
+        let alone = map_scheduling(&model, &ds, &[white], &[1e-4], 6, None).unwrap();
+        let with = map_scheduling(&model, &ds, &[smooth], &[1e-4], 6, None).unwrap();
         let (a, w) = (rms(&alone.columns[0], &p), rms(&with.columns[0], &p));
         // measured: 0.203 -> 0.065 (white), 0.0064 (smooth)
         assert!(
@@ -617,24 +606,21 @@ mod tests {
             "{at_truth} vs {at_measured}"
         );
         // the MAP estimate lies between them in p and below both in the objective's output part
-        let est = map_scheduling(&model, &ds, &col, &[1e-4], 6).unwrap();
+        let est = map_scheduling(&model, &ds, &col, &[1e-4], 6, None).unwrap();
         assert!(
             score(&est.columns[0]) < at_measured,
             "{}",
             score(&est.columns[0])
         );
         // warm-started at its own result, the Gauss-Newton steps barely move it
-        let again =
-            map_scheduling_from(&model, &ds, &col, &[1e-4], 6, Some(&est.columns[..])).unwrap();
+        let again = map_scheduling(&model, &ds, &col, &[1e-4], 6, Some(&est.columns[..])).unwrap();
         assert!(
             rms(&again.columns[0], &est.columns[0]) < 0.05 * rms(&est.columns[0], &ds.cols[2]),
             "moved {}",
             rms(&again.columns[0], &est.columns[0])
         );
         // a start of the wrong shape is refused
-        assert!(
-            map_scheduling_from(&model, &ds, &col, &[1e-4], 6, Some(&[vec![0.0; 5]])).is_none()
-        );
+        assert!(map_scheduling(&model, &ds, &col, &[1e-4], 6, Some(&[vec![0.0; 5]])).is_none());
     }
 
     #[test]
@@ -652,7 +638,7 @@ mod tests {
             noise_var: 0.04,
             smooth: None,
         }];
-        assert!(map_scheduling(&model, &ds, &col, &[1e-4], 6).is_none());
+        assert!(map_scheduling(&model, &ds, &col, &[1e-4], 6, None).is_none());
     }
 
     #[test]

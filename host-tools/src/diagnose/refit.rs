@@ -482,7 +482,7 @@ pub fn fit_latent(
     train: &Dataset,
     base_fit: &Value,
 ) -> Result<Fitted, RefitError> {
-    use super::latent::{map_scheduling_from, NoisyColumn, SmoothnessPrior};
+    use super::latent::{map_scheduling, NoisyColumn, SmoothnessPrior};
     let inner = Spec {
         latent: None,
         ..spec.clone()
@@ -529,7 +529,7 @@ pub fn fit_latent(
             .collect();
         // warm: from the sequence the model was fitted on (the measurement in the first round)
         let start = last.as_ref().map(|e| &e.columns[..]);
-        let Some(est) = map_scheduling_from(&fitted.model, train, &cols, &var, 6, start) else {
+        let Some(est) = map_scheduling(&fitted.model, train, &cols, &var, 6, start) else {
             if last.is_none() {
                 return Err(RefitError::Unsupported(
                     "the scheduling sequence could not be estimated from the outputs (the free run fails, p does not move it, or the record is too long for the band)".into(),
