@@ -1,6 +1,6 @@
-//! Output-error refinement of an identified LPV state-space model: Levenberg-Marquardt on
-//! the free-run simulation error over A^(i), B^(i), C, D and the initial state, started from
-//! the subspace estimate. LPV-PBSID_opt with a finite past window carries a truncation bias
+//! Output-error refinement of an identified LPV state-space model: Levenberg-Marquardt (with
+//! geodesic acceleration, [`accelerated_step`]) on the free-run simulation error over
+//! A^(i), B^(i), C, D and the initial state, started from the subspace estimate. LPV-PBSID_opt with a finite past window carries a truncation bias
 //! (the phi_{p,k} ~ 0 approximation of section 4.1 of the kernel paper); this removes it
 //! when the data allow (open loop, output noise), as prediction-error methods do after a
 //! subspace initialisation. K is left as identified (it does not enter the free run); with
@@ -347,6 +347,68 @@ where
     jac
 }
 
+/// Step of the finite difference along the velocity that estimates the residual's second
+/// directional derivative in [`accelerated_step`] (relative to the velocity).
+pub const GEODESIC_H: f64 = 0.1;
+/// The acceleration is added only where 2 |a| <= GEODESIC_ALPHA |v| (norms scaled by the
+/// damping's diagonal), the bound of Transtrum & Sethna on a step the second-order
+/// correction can be trusted for.
+pub const GEODESIC_ALPHA: f64 = 0.75;
+
+/// The Levenberg-Marquardt step with geodesic acceleration (Transtrum & Sethna,
+/// "Improvements to the Levenberg-Marquardt algorithm for nonlinear least-squares
+/// minimization", arXiv:1201.5885, 2012): to the velocity `v` (the solution of
+/// (J'J + mu D) v = -J'r; `lhs` is that matrix factored) it adds half the acceleration a,
+/// the solution of (J'J + mu D) a = -J' r_vv, where r_vv ~ (2/h)((r(theta + h v) -
+/// r(theta))/h - J v) is the residual's second directional derivative along v (one more
+/// residual evaluation). The step then follows the curve of a narrow valley instead of its
+/// tangent: the own-output refinements of EMPS crept along such valleys to the iteration
+/// ceiling. Where 2 |a|_D > alpha |v|_D (D = `diag`, the diagonal of J'J) the correction is
+/// not trusted and v alone is returned; the paper raises the damping there instead, which
+/// ended an EMPS descent at a training MSE of 0.19 where the plain step reaches 0.043.
+/// Descents under the frozen-stability guard take the plain velocity: a step the guard
+/// retracts is not on the path the acceleration bends, and with it the p1^2 refit of the
+/// long-tier plant 37000 lost its replication on one training half (-1.5 % instead of 73 %).
+fn accelerated_step<F>(
+    lhs: &nalgebra::linalg::Cholesky<f64, nalgebra::Dyn>,
+    jac: &DMatrix<f64>,
+    diag: &[f64],
+    theta: &[f64],
+    r: &[f64],
+    v: DVector<f64>,
+    residual: F,
+) -> DVector<f64>
+where
+    F: Fn(&[f64]) -> Option<Vec<f64>>,
+{
+    let probe: Vec<f64> = theta
+        .iter()
+        .zip(v.iter())
+        .map(|(t, s)| t + GEODESIC_H * s)
+        .collect();
+    let Some(rv) = residual(&probe) else {
+        return v;
+    };
+    let jv = jac * &v;
+    let rvv = DVector::from_iterator(
+        r.len(),
+        (0..r.len()).map(|i| 2.0 / GEODESIC_H * ((rv[i] - r[i]) / GEODESIC_H - jv[i])),
+    );
+    let a = lhs.solve(&(-(jac.tr_mul(&rvv))));
+    let norm = |x: &DVector<f64>| -> f64 {
+        x.iter()
+            .zip(diag)
+            .map(|(xi, d)| d * xi * xi)
+            .sum::<f64>()
+            .sqrt()
+    };
+    if a.iter().all(|x| x.is_finite()) && 2.0 * norm(&a) <= GEODESIC_ALPHA * norm(&v) {
+        v + 0.5 * a
+    } else {
+        v
+    }
+}
+
 /// Iterations over which the stall test of the Levenberg-Marquardt loop measures progress.
 pub const STALL_WINDOW: usize = 10;
 /// Relative cost decrease over [`STALL_WINDOW`] iterations below which the loop stops.
@@ -558,20 +620,28 @@ fn descend(
         let jt = jac.transpose();
         let jtj = &jt * &jac;
         let g = &jt * DVector::from_column_slice(&r);
+        let diag: Vec<f64> = (0..np).map(|d| jtj[(d, d)] + 1e-12).collect();
         let mut improved = false;
         let mut converged = false;
         for _ in 0..12 {
             let mut lhs = jtj.clone();
-            for d in 0..np {
-                lhs[(d, d)] += mu * (jtj[(d, d)] + 1e-12);
+            for (d, w) in diag.iter().enumerate() {
+                lhs[(d, d)] += mu * w;
             }
             // r = y - yhat, J = dr/dtheta: the Gauss-Newton step is -(J'J)^-1 J' r
-            let step = match lhs.cholesky() {
-                Some(ch) => ch.solve(&(-&g)),
-                None => {
-                    mu *= 10.0;
-                    continue;
-                }
+            let Some(ch) = lhs.cholesky() else {
+                mu *= 10.0;
+                continue;
+            };
+            // the velocity, accelerated where no guard may retract the step (the acceleration
+            // bends the path of the step as computed, not of its retraction)
+            let velocity = ch.solve(&(-&g));
+            let step = if guard.is_none() {
+                accelerated_step(&ch, &jac, &diag, &theta, &r, velocity, |t| {
+                    cost(t).map(|(_, r)| r)
+                })
+            } else {
+                velocity
             };
             let mut cand: Vec<f64> = theta.iter().zip(step.iter()).map(|(a, b)| a + b).collect();
             // a step the guard does not admit is retracted: A^(i) all scaled by one factor so
@@ -735,6 +805,64 @@ mod tests {
         assert!(!stalled(&geometric(1e-8, STALL_WINDOW)));
         // 1e-7 per iteration: 1e-6 over the window, at the boundary; 2e-7 is progress
         assert!(!stalled(&geometric(2e-7, 40)));
+    }
+
+    /// Rosenbrock's valley r = [10 (t2 - t1^2), 1 - t1] from (-1.2, 1), by the loop of
+    /// [`descend`] (damping on the diagonal of J'J, /3 on success, x10 on failure): with the
+    /// geodesic acceleration of [`accelerated_step`] the minimum (1, 1) is reached to a cost
+    /// of 1e-20 in fewer Jacobians than with the velocity alone (measured: 17 against 22).
+    #[test]
+    fn geodesic_acceleration_follows_a_curved_valley() {
+        let residual = |t: &[f64]| Some(vec![10.0 * (t[1] - t[0] * t[0]), 1.0 - t[0]]);
+        let jacobian = |t: &[f64]| DMatrix::from_row_slice(2, 2, &[-20.0 * t[0], 10.0, -1.0, 0.0]);
+        let run = |accelerate: bool| -> (usize, Vec<f64>) {
+            let mut theta = vec![-1.2, 1.0];
+            let mut r = residual(&theta).unwrap();
+            let sq = |r: &[f64]| r.iter().map(|v| v * v).sum::<f64>();
+            let mut mu = 1e-3;
+            for it in 1..=200 {
+                let jac = jacobian(&theta);
+                let jtj = jac.tr_mul(&jac);
+                let g = jac.tr_mul(&DVector::from_column_slice(&r));
+                let diag: Vec<f64> = (0..2).map(|d| jtj[(d, d)] + 1e-12).collect();
+                for _ in 0..12 {
+                    let mut lhs = jtj.clone();
+                    for (d, w) in diag.iter().enumerate() {
+                        lhs[(d, d)] += mu * w;
+                    }
+                    let ch = lhs.cholesky().unwrap();
+                    let v = ch.solve(&(-&g));
+                    let step = if accelerate {
+                        accelerated_step(&ch, &jac, &diag, &theta, &r, v, residual)
+                    } else {
+                        v
+                    };
+                    let cand: Vec<f64> =
+                        theta.iter().zip(step.iter()).map(|(a, b)| a + b).collect();
+                    let r2 = residual(&cand).unwrap();
+                    if sq(&r2) < sq(&r) {
+                        (theta, r) = (cand, r2);
+                        mu = (mu / 3.0f64).max(1e-12);
+                        break;
+                    }
+                    mu *= 10.0;
+                }
+                if sq(&r) < 1e-20 {
+                    return (it, theta);
+                }
+            }
+            (usize::MAX, theta)
+        };
+        let (plain, t_plain) = run(false);
+        let (accel, t_accel) = run(true);
+        println!("Jacobians to a cost of 1e-20: {plain} plain, {accel} accelerated");
+        for t in [&t_plain, &t_accel] {
+            assert!(
+                (t[0] - 1.0).abs() < 1e-8 && (t[1] - 1.0).abs() < 1e-8,
+                "{t:?}"
+            );
+        }
+        assert!(accel < plain, "{accel} vs {plain}");
     }
 
     /// A first-order Lur'e loop x+ = 0.5 x + 0.5 u + 0.8 sin(0.5 y), y = x, with a little
