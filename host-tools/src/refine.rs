@@ -1,6 +1,7 @@
 //! Output-error refinement of an identified LPV state-space model: Levenberg-Marquardt (with
-//! geodesic acceleration, [`accelerated_step`]) on the free-run simulation error over
-//! A^(i), B^(i), C, D and the initial state, started from the subspace estimate. LPV-PBSID_opt with a finite past window carries a truncation bias
+//! geodesic acceleration, `accelerated_step`) on the free-run simulation error over
+//! A^(i), B^(i), C, D and the initial state, started from the subspace estimate.
+//! LPV-PBSID_opt with a finite past window carries a truncation bias
 //! (the phi_{p,k} ~ 0 approximation of section 4.1 of the kernel paper); this removes it
 //! when the data allow (open loop, output noise), as prediction-error methods do after a
 //! subspace initialisation. K is left as identified (it does not enter the free run); with
@@ -349,11 +350,11 @@ where
 
 /// Step of the finite difference along the velocity that estimates the residual's second
 /// directional derivative in [`accelerated_step`] (relative to the velocity).
-pub const GEODESIC_H: f64 = 0.1;
+const GEODESIC_H: f64 = 0.1;
 /// The acceleration is added only where 2 |a| <= GEODESIC_ALPHA |v| (norms scaled by the
 /// damping's diagonal), the bound of Transtrum & Sethna on a step the second-order
 /// correction can be trusted for.
-pub const GEODESIC_ALPHA: f64 = 0.75;
+const GEODESIC_ALPHA: f64 = 0.75;
 
 /// The Levenberg-Marquardt step with geodesic acceleration (Transtrum & Sethna,
 /// "Improvements to the Levenberg-Marquardt algorithm for nonlinear least-squares
@@ -366,9 +367,6 @@ pub const GEODESIC_ALPHA: f64 = 0.75;
 /// ceiling. Where 2 |a|_D > alpha |v|_D (D = `diag`, the diagonal of J'J) the correction is
 /// not trusted and v alone is returned; the paper raises the damping there instead, which
 /// ended an EMPS descent at a training MSE of 0.19 where the plain step reaches 0.043.
-/// Descents under the frozen-stability guard take the plain velocity: a step the guard
-/// retracts is not on the path the acceleration bends, and with it the p1^2 refit of the
-/// long-tier plant 37000 lost its replication on one training half (-1.5 % instead of 73 %).
 fn accelerated_step<F>(
     lhs: &nalgebra::linalg::Cholesky<f64, nalgebra::Dyn>,
     jac: &DMatrix<f64>,
@@ -633,8 +631,9 @@ fn descend(
                 mu *= 10.0;
                 continue;
             };
-            // the velocity, accelerated where no guard may retract the step (the acceleration
-            // bends the path of the step as computed, not of its retraction)
+            // the velocity, accelerated only where no guard may retract the step: a retracted
+            // step is not on the path the acceleration bends (with it, the p1^2 refit of the
+            // long-tier plant 37000 lost its replication on a training half, -1.5 % against 73 %)
             let velocity = ch.solve(&(-&g));
             let step = if guard.is_none() {
                 accelerated_step(&ch, &jac, &diag, &theta, &r, velocity, |t| {
