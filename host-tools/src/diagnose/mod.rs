@@ -699,6 +699,7 @@ fn diagnose_step(
         train,
         val,
         train_residual: &train_res,
+        train_signals: &train_sig,
     };
     let (mut cands, na, mut skipped) = candidates(&ctx);
     // the model's own structure with a larger past window, which every finding must also

@@ -414,40 +414,95 @@ pub fn refine_peak(x: &[f64], lo: f64, hi: f64) -> f64 {
     0.5 * (a + b)
 }
 
-/// Residual sum of squares of the mean-removed series `x` after least squares on
-/// sin(h omega k), cos(h omega k), h = 1..=`harmonics` (a harmonic series of one fundamental
-/// `omega` in rad/sample). The normal equations are 2H x 2H; non-finite results count as
-/// the series' own sum of squares (nothing explained).
-pub fn harmonic_rss(x: &[f64], omega: f64, harmonics: usize) -> f64 {
-    let m = mean(x);
-    if harmonics == 0 {
-        return x.iter().map(|v| (v - m) * (v - m)).sum();
+/// Regressors a harmonic fit is made beside ([`harmonic_rss`]): X (N x m) and the Cholesky
+/// factor of X^T X, formed once, so that each trial frequency costs only the products of its
+/// own sin/cos columns.
+#[derive(Debug, Clone)]
+pub struct Nuisance {
+    x: DMatrix<f64>,
+    xtx: nalgebra::Cholesky<f64, nalgebra::Dyn>,
+}
+
+impl Nuisance {
+    /// The constant alone: the series' mean removed.
+    pub fn constant(n: usize) -> Nuisance {
+        Nuisance::new(DMatrix::from_element(n.max(1), 1, 1.0)).expect("a nonzero column")
+    }
+
+    /// The columns of `x`, each scaled to unit norm (the span is what counts; signals of very
+    /// different sizes would otherwise cost X^T X its conditioning), with a ridge of 1e-10
+    /// against collinear columns (a product with a constant scheduling signal). Zero
+    /// columns are dropped. None when no column is left or an entry is not finite.
+    pub fn new(x: DMatrix<f64>) -> Option<Nuisance> {
+        if x.iter().any(|v| !v.is_finite()) {
+            return None;
+        }
+        let kept: Vec<nalgebra::DVector<f64>> = x
+            .column_iter()
+            .filter_map(|c| {
+                let norm = c.norm();
+                (norm > 0.0).then(|| c / norm)
+            })
+            .collect();
+        if kept.is_empty() {
+            return None;
+        }
+        let x = DMatrix::from_columns(&kept);
+        let mut xtx = x.tr_mul(&x);
+        for i in 0..x.ncols() {
+            xtx[(i, i)] += 1e-10;
+        }
+        let xtx = xtx.cholesky()?;
+        Some(Nuisance { x, xtx })
+    }
+
+    /// Number of rows.
+    pub fn len(&self) -> usize {
+        self.x.nrows()
+    }
+
+    /// True when there is no row.
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    /// Number of regressors.
+    pub fn width(&self) -> usize {
+        self.x.ncols()
+    }
+}
+
+/// Residual sum of squares of the series `x` after least squares on the regressors of
+/// `beside` and sin(h omega k), cos(h omega k), h = 1..=`harmonics` (a harmonic series of one
+/// fundamental `omega` in rad/sample), by the Schur complement of the nuisance block: the
+/// sinusoids' normal equations are 2H x 2H. With [`Nuisance::constant`] this is the
+/// mean-removed series' fit. Non-finite results, and a series whose length is not the
+/// nuisance's, count as the series' own sum of squares (nothing explained).
+pub fn harmonic_rss(x: &[f64], omega: f64, harmonics: usize, beside: &Nuisance) -> f64 {
+    let raw: f64 = x.iter().map(|v| v * v).sum();
+    if x.len() != beside.len() {
+        return raw;
+    }
+    let xv = nalgebra::DVector::from_column_slice(x);
+    let bx = beside.x.tr_mul(&xv);
+    let kx = beside.xtx.solve(&bx);
+    let tot = (raw - bx.dot(&kx)).max(0.0);
+    if harmonics == 0 || !tot.is_finite() {
+        return if tot.is_finite() { tot } else { raw };
     }
     let w = 2 * harmonics;
-    let mut g = DMatrix::<f64>::zeros(w, w);
-    let mut b = nalgebra::DVector::<f64>::zeros(w);
-    let mut phi = vec![0.0; w];
-    let mut tot = 0.0;
-    for (k, v) in x.iter().enumerate() {
-        let v = v - m;
-        tot += v * v;
-        for h in 0..harmonics {
-            let a = (h + 1) as f64 * omega * k as f64;
-            phi[2 * h] = a.sin();
-            phi[2 * h + 1] = a.cos();
+    let s = DMatrix::<f64>::from_fn(x.len(), w, |k, j| {
+        let a = (j / 2 + 1) as f64 * omega * k as f64;
+        if j % 2 == 0 {
+            a.sin()
+        } else {
+            a.cos()
         }
-        for i in 0..w {
-            b[i] += phi[i] * v;
-            for j in 0..=i {
-                g[(i, j)] += phi[i] * phi[j];
-            }
-        }
-    }
-    for i in 0..w {
-        for j in 0..i {
-            g[(j, i)] = g[(i, j)];
-        }
-    }
+    });
+    let xs = beside.x.tr_mul(&s);
+    let ks = beside.xtx.solve(&xs);
+    let g = s.tr_mul(&s) - xs.tr_mul(&ks);
+    let b = s.tr_mul(&xv) - ks.tr_mul(&bx);
     match g.cholesky() {
         Some(c) => {
             let th = c.solve(&b);
@@ -463,12 +518,19 @@ pub fn harmonic_rss(x: &[f64], omega: f64, harmonics: usize) -> f64 {
 }
 
 /// The fundamental in [lo, hi] (rad/sample) minimising the summed [`harmonic_rss`] of the
-/// series `xs` with `harmonics` harmonics: least squares on the frequency, beyond the
-/// periodogram's bin (a grid of 41 points, then golden-section search around the best one).
-pub fn refine_harmonic(xs: &[Vec<f64>], lo: f64, hi: f64, harmonics: usize) -> f64 {
+/// series `xs` with `harmonics` harmonics beside the regressors `beside`: least squares on
+/// the frequency, beyond the periodogram's bin (a grid of 41 points, then golden-section
+/// search around the best one).
+pub fn refine_harmonic(
+    xs: &[Vec<f64>],
+    lo: f64,
+    hi: f64,
+    harmonics: usize,
+    beside: &Nuisance,
+) -> f64 {
     let f = |w: f64| {
         xs.iter()
-            .map(|x| harmonic_rss(x, w, harmonics))
+            .map(|x| harmonic_rss(x, w, harmonics, beside))
             .sum::<f64>()
     };
     let steps = 40;
@@ -751,14 +813,68 @@ mod tests {
             })
             .collect();
         let bin = 2.0 * std::f64::consts::PI / n as f64;
-        let w = refine_harmonic(std::slice::from_ref(&x), w0 - bin, w0 + bin, 3);
+        let mean = Nuisance::constant(n);
+        let w = refine_harmonic(std::slice::from_ref(&x), w0 - bin, w0 + bin, 3, &mean);
         assert!((w - w0).abs() < 0.02 * bin, "{w} vs {w0}");
-        let r3 = harmonic_rss(&x, w, 3);
-        let r1 = harmonic_rss(&x, w, 1);
-        let tot = harmonic_rss(&x, w, 0);
+        let r3 = harmonic_rss(&x, w, 3, &mean);
+        let r1 = harmonic_rss(&x, w, 1, &mean);
+        let tot = harmonic_rss(&x, w, 0, &mean);
         assert!(r3 < r1 && r1 < tot);
         // what is left is the noise: n / 12 within 10 %
         assert!((r3 / (n as f64 / 12.0) - 1.0).abs() < 0.1, "{r3}");
+    }
+
+    #[test]
+    fn harmonic_rss_beside_regressors_is_the_joint_least_squares() {
+        // the Schur complement of the nuisance block against one least squares on [X, S],
+        // with regressors of very different sizes (the columns are scaled inside)
+        let (n, w, h) = (300, 0.61, 2);
+        let mut s = 99u64;
+        let mut next = || {
+            s = s
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            ((s >> 11) as f64 / (1u64 << 53) as f64) - 0.5
+        };
+        let x = DMatrix::<f64>::from_fn(n, 4, |k, j| match j {
+            0 => 1.0,
+            1 => 300.0 * next(),
+            2 => k as f64 * 0.01,
+            _ => 1e-3 * next(),
+        });
+        let y: Vec<f64> = (0..n)
+            .map(|k| 2.0 * x[(k, 1)] / 300.0 + (w * k as f64).sin() + 0.3 * next())
+            .collect();
+        let joint = DMatrix::<f64>::from_fn(n, 4 + 2 * h, |k, j| {
+            if j < 4 {
+                x[(k, j)]
+            } else {
+                let a = ((j - 4) / 2 + 1) as f64 * w * k as f64;
+                if (j - 4) % 2 == 0 {
+                    a.sin()
+                } else {
+                    a.cos()
+                }
+            }
+        });
+        let yv = nalgebra::DVector::from_vec(y.clone());
+        let direct = |m: &DMatrix<f64>| {
+            let th = m.clone().svd(true, true).solve(&yv, 1e-14).unwrap();
+            (&yv - m * th).norm_squared()
+        };
+        let beside = Nuisance::new(x.clone()).unwrap();
+        let (rh, r0) = (
+            harmonic_rss(&y, w, h, &beside),
+            harmonic_rss(&y, w, 0, &beside),
+        );
+        let (dh, d0) = (direct(&joint), direct(&x));
+        assert!((rh / dh - 1.0).abs() < 1e-8, "{rh} vs {dh}");
+        assert!((r0 / d0 - 1.0).abs() < 1e-8, "{r0} vs {d0}");
+        // a series of another length explains nothing
+        assert_eq!(
+            harmonic_rss(&y[1..], w, h, &beside),
+            y[1..].iter().map(|v| v * v).sum::<f64>()
+        );
     }
 
     #[test]
