@@ -953,16 +953,13 @@ pub fn periodic_lines(
     }
     // the series the frequency is fitted on, and the regressors beside it
     let mean = Nuisance::constant(n);
-    let (series, beside, on_outputs) = match fit_on {
-        Some((y, nuisance)) if y.nrows() == n && nuisance.len() == n => {
-            let ys = finite_columns(y);
-            if ys.len() == y.ncols() {
-                (ys, nuisance, true)
-            } else {
-                (cols.clone(), &mean, false)
-            }
-        }
-        _ => (cols.clone(), &mean, false),
+    let on_y = fit_on
+        .filter(|(y, nuisance)| y.nrows() == n && nuisance.len() == n)
+        .map(|(y, nuisance)| (finite_columns(y), y.ncols(), nuisance))
+        .filter(|(ys, l, _)| ys.len() == *l);
+    let (series, beside, on_outputs): (&[Vec<f64>], &Nuisance, bool) = match &on_y {
+        Some((ys, _, nuisance)) => (ys, nuisance, true),
+        None => (&cols, &mean, false),
     };
     let bin = 2.0 * std::f64::consts::PI / n as f64;
     let mut peaks: Vec<(f64, f64)> = Vec::new(); // omega, ratio
@@ -1024,7 +1021,7 @@ pub fn periodic_lines(
         let harmonics = (top_h + 2).min(MAX_HARMONICS).min(nyq).max(1);
         let fit_h = top_h.min(nyq).max(1);
         let half = 0.75 * bin / fit_h as f64;
-        let omega = super::stats::refine_harmonic(&series, f0 - half, f0 + half, fit_h, beside);
+        let omega = super::stats::refine_harmonic(series, f0 - half, f0 + half, fit_h, beside);
         if out.iter().all(|l| (l.omega - omega).abs() > tol) {
             out.push(Lines {
                 omega,

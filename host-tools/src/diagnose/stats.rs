@@ -758,6 +758,18 @@ pub fn lstsq(
 mod tests {
     use super::*;
 
+    /// Uniform numbers in [-0.5, 0.5) from a 64-bit linear congruential generator (Knuth's
+    /// MMIX constants): a fixed, dependency-free noise for these tests.
+    fn uniform(seed: u64) -> impl FnMut() -> f64 {
+        let mut s = seed;
+        move || {
+            s = s
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            ((s >> 11) as f64 / (1u64 << 53) as f64) - 0.5
+        }
+    }
+
     #[test]
     fn distributions() {
         assert!((chi2_sf(3.841_458_820_694_124, 1.0) - 0.05).abs() < 1e-9);
@@ -801,13 +813,10 @@ mod tests {
         // 1P and 3P of a fundamental between two periodogram bins, in white noise
         let n = 4000;
         let w0 = 0.3871234;
-        let mut s = 12345u64;
+        let mut noise = uniform(12345);
         let x: Vec<f64> = (0..n)
             .map(|k| {
-                s = s
-                    .wrapping_mul(6364136223846793005)
-                    .wrapping_add(1442695040888963407);
-                let e = ((s >> 11) as f64 / (1u64 << 53) as f64) - 0.5;
+                let e = noise();
                 let a = w0 * k as f64;
                 (a + 0.3).sin() + 0.5 * (3.0 * a).cos() + e
             })
@@ -829,13 +838,7 @@ mod tests {
         // the Schur complement of the nuisance block against one least squares on [X, S],
         // with regressors of very different sizes (the columns are scaled inside)
         let (n, w, h) = (300, 0.61, 2);
-        let mut s = 99u64;
-        let mut next = || {
-            s = s
-                .wrapping_mul(6364136223846793005)
-                .wrapping_add(1442695040888963407);
-            ((s >> 11) as f64 / (1u64 << 53) as f64) - 0.5
-        };
+        let mut next = uniform(99);
         let x = DMatrix::<f64>::from_fn(n, 4, |k, j| match j {
             0 => 1.0,
             1 => 300.0 * next(),
@@ -999,13 +1002,7 @@ mod tests {
     fn batch_means_detects_a_shift_in_coloured_noise() {
         // AR(1) noise with pole 0.9: mean zero
         let mut v = 0.0;
-        let mut s = 12345u64;
-        let mut noise = || {
-            s = s
-                .wrapping_mul(6364136223846793005)
-                .wrapping_add(1442695040888963407);
-            ((s >> 11) as f64 / (1u64 << 53) as f64) - 0.5
-        };
+        let mut noise = uniform(12345);
         let d: Vec<f64> = (0..4000)
             .map(|_| {
                 v = 0.9 * v + noise();
