@@ -7,7 +7,8 @@
 //! null of its own ([`effects::beats_user`]), that structure with a larger past window
 //! ([`effects::larger_past`]; not for order-too-low, which is that structure), for an
 //! own-output variant that structure refined from the variant's fit with its own-output
-//! signals linearised ([`output::linearised_null`]), that structure refined by output error
+//! signals linearised ([`output::linearised_null`]), for a periodic-disturbance variant the
+//! same fit without its sinusoids ([`catalogue::without_sinusoids`]), that structure refined by output error
 //! from the best of its starts ([`output::refined_structure`]; the scheduling effects,
 //! [`effects::needs_refined_null`]; coloured-noise, order-too-low and input-delay by
 //! [`states::states_check`]) and the memory rule ([`memory::forgets_as_null`]). A rule is
@@ -24,7 +25,7 @@ use super::memory::{self, Basis, Memory};
 use super::refit::{Fitted, Spec};
 use super::replicate::{Halves, Replication};
 use super::residual::{ResidualReport, ALPHA};
-use super::{encompass, output, replicate, states};
+use super::{catalogue, encompass, output, replicate, states};
 use super::{fit_eval, mean_vaf, mode_name};
 use crate::data::Dataset;
 use crate::simulate::Mode;
@@ -91,6 +92,9 @@ pub(crate) struct Judgement {
     /// An own-output variant against the model's structure refined from the variant's fit
     /// linearised ([`super::output::linearised_null`]).
     pub vs_linearised: Option<Versus>,
+    /// A periodic-disturbance variant against itself without its sinusoids
+    /// ([`catalogue::without_sinusoids`]).
+    pub vs_without: Option<Versus>,
     /// A coloured-noise or order-too-low variant against that structure refined
     /// ([`states::states_check`]).
     pub states: Option<states::StatesCheck>,
@@ -341,6 +345,19 @@ impl Bench<'_> {
         if !self.beaten(j.vs_linearised, short) {
             return;
         }
+        // a periodic-disturbance variant must owe its gain to its sinusoids: against the same
+        // fit with them removed (catalogue::without_sinusoids)
+        if j.effect == Effect::PeriodicDisturbance {
+            j.vs_without = s.fitted.as_ref().zip(s.eval.as_ref()).and_then(|(f, e)| {
+                let null = s.cand.null.as_ref().unwrap_or(self.spec);
+                let m = catalogue::without_sinusoids(&f.model, &null.signals)?;
+                let l = Eval::new(&m, self.val).ok()?;
+                effects::versus_larger(&l.loss(mode), &e.loss(mode))
+            });
+        }
+        if !self.beaten(j.vs_without, short) {
+            return;
+        }
         // a scheduling variant judged against the model's structure refit must also beat
         // that structure refined by output error (effects::needs_refined_null)
         if effects::needs_refined_null(s) {
@@ -410,6 +427,7 @@ impl Judgement {
             vs_larger: None,
             vs_refined: None,
             vs_linearised: None,
+            vs_without: None,
             states: None,
             memory: None,
             passed: false,
@@ -492,6 +510,13 @@ impl Judgement {
         if let Some(v) = self.vs_linearised {
             ev.push(format!(
                 "against the model's own structure refined from this variant's fit with its own-output signals linearised: explains {:.1} % of its held-out error (p = {:.2e})",
+                100.0 * v.0,
+                v.1
+            ));
+        }
+        if let Some(v) = self.vs_without {
+            ev.push(format!(
+                "against the same fit without its sinusoids (their columns of B and D set to zero): they explain {:.1} % of its held-out error (p = {:.2e})",
                 100.0 * v.0,
                 v.1
             ));
@@ -616,6 +641,12 @@ impl Judgement {
             } else if let Some(v) = self.vs_linearised.filter(|v| !beaten(Some(*v))) {
                 format!(
                 "the model's own structure refined from this variant's fit, its own-output signals replaced by their best linear stand-ins, removes that error as well: against it this variant explains {:.1} % of the held-out error (p = {:.2e}); what it removed is a local minimum of the structure's refinement, not a dependence on the output level",
+                100.0 * v.0,
+                v.1
+            )
+            } else if let Some(v) = self.vs_without.filter(|v| !beaten(Some(*v))) {
+                format!(
+                "the same fit without its sinusoids (their columns of B and D set to zero, every other coefficient as fitted) does as well: against it the sinusoids explain {:.1} % of the held-out error (p = {:.2e}); what the variant removed is a change in the rest of the estimate that adding two input channels to the refit made, not a periodic disturbance",
                 100.0 * v.0,
                 v.1
             )
