@@ -367,3 +367,32 @@ fn scheduling_effects_told_apart_by_refined_nested_refits() {
         assert_eq!(r.applied.first().map(|a| a.effect), Some(effect));
     }
 }
+
+/// The family's coloured-noise plant 197000 (order 2, past window 8, noise strength 0.48):
+/// the user's least-squares K leaves A - K C with spectral radius 1.17, its one-step
+/// prediction runs away (one-step VAF 0 %, the fix's error ratio 6.5e199). The report says
+/// why beside the scores it explains, and the noise model it adds predicts.
+#[test]
+fn an_unstable_predictor_is_named_in_the_report() {
+    let (_, out) = diagnose_support::family::diagnose_one("coloured-noise", 197000, 1500);
+    let r = &out.report;
+    let note = r
+        .notes
+        .iter()
+        .find(|n| n.contains("one-step predictor A(mu) - K(mu) C is unstable"))
+        .unwrap_or_else(|| panic!("a note on the unstable predictor in {:?}", r.notes));
+    let rho = diagnose_support::family::number_after(note, "spectral radius reaches ");
+    assert!((1.0..1.5).contains(&rho), "{rho}");
+    let a = r.applied.first().expect("a noise model applied");
+    assert_eq!(a.effect, "coloured-noise");
+    assert!(
+        a.mse_after.is_finite() && a.mse_after < 1.0,
+        "{}",
+        a.mse_after
+    );
+    let text = lpvid_host::diagnose::report::summary(r, &[]);
+    assert!(
+        text.contains("Note: the model's one-step predictor"),
+        "{text}"
+    );
+}

@@ -384,6 +384,7 @@ pub fn diagnose_with_progress(
     let score_model = |m: &ModelFile, mode: Mode| score_from(m, val, mode, x0);
     let before = score_model(model, Mode::FreeRun)?;
     let before_one_step = score_model(model, Mode::Predictor)?;
+    notes.extend(unstable_predictor(model, val, &before_one_step));
     let before_eval = Eval::new(model, val)?;
     let (free0, one0) = residual_reports(&before_eval, val);
     let mut trail = Trail {
@@ -587,6 +588,40 @@ fn with_provenance(
         m.insert("diagnose".into(), serde_json::Value::Array(history));
     }
     fixed
+}
+
+/// A note when the model's one-step predictor A(mu) - K(mu) C is unstable over the held-out
+/// data's scheduling range (largest frozen spectral radius >= 1,
+/// [`crate::observer::max_predictor_radius`]): its one-step prediction then runs away from
+/// the outputs, its one-step VAF says nothing of the model's dynamics, and a noise model's
+/// error ratio against it is unbounded (the family's coloured-noise plant 197000: order 2,
+/// past window 8, radius 1.17, ratio 6.5e199). `lpvid pbsid` warns of it; the report says it
+/// again beside the one-step scores it explains.
+fn unstable_predictor(model: &ModelFile, val: &Dataset, one_step: &Score) -> Option<String> {
+    let crate::model::ModelKind::Ss(ss) = &model.kind else {
+        return None;
+    };
+    let sig = model.signals.evaluate(val).ok()?;
+    let names: Vec<String> = model
+        .signals
+        .scheduling
+        .iter()
+        .skip(1)
+        .map(|p| crate::model::describe(p))
+        .collect();
+    let sbox = crate::observer::SchedBox::from_signals(&names, &sig);
+    let rho = crate::observer::max_predictor_radius(ss, &sbox, crate::observer::REPORT_GRID);
+    (rho >= 1.0).then(|| {
+        format!(
+            "the model's one-step predictor A(mu) - K(mu) C is unstable: its spectral radius reaches {rho:.4} over the validation data's scheduling range, so its one-step prediction runs away from the outputs (one-step VAF {} %) and any error ratio against it is unbounded; `lpvid pbsid --observer hinf` designs a stable gain (see `lpvid stability`)",
+            one_step
+                .vaf
+                .iter()
+                .map(|v| format!("{v:.2}"))
+                .collect::<Vec<_>>()
+                .join(" / ")
+        )
+    })
 }
 
 /// The residual of the null refit on the TRAINING data that the catalogue designs frequencies
