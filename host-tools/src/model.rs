@@ -348,6 +348,16 @@ impl SignalMap {
         self.scheduling.len()
     }
 
+    /// The names of the scheduling functions mu^(2..m) ([`describe`]), as the stability
+    /// region and the observer's box report them (the constant mu^(1) has none).
+    pub fn scheduling_names(&self) -> Vec<String> {
+        self.scheduling
+            .iter()
+            .skip(1)
+            .map(|p| describe(p))
+            .collect()
+    }
+
     /// Check the map on its own: at least one output, first scheduling function `[]`,
     /// every factor valid. The error says where (e.g. `scheduling[0]`).
     pub fn check(&self) -> Result<(), String> {

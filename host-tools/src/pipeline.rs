@@ -24,7 +24,7 @@ use crate::arx::{self, ArxDims, ArxFit, ArxOptions, Estimator, LambdaChoice, Sig
 use crate::data::Dataset;
 use crate::error::Error;
 use crate::lpvss::{LpvSs, Signals};
-use crate::model::{describe, ModelFile, ModelKind, SignalMap};
+use crate::model::{ModelFile, ModelKind, SignalMap};
 use crate::observer::{self, ObserverRequest, ObserverStep};
 use crate::pbsid::{self, PbsidFit, PbsidOptions, Reg};
 use crate::simulate::{run, simulate, Mode, X0, X0_SAMPLES};
@@ -150,7 +150,7 @@ pub fn identify(
         None => (fit, opts.clone(), None),
     };
     let opts = &checked_opts;
-    let names: Vec<String> = map.scheduling.iter().skip(1).map(|p| describe(p)).collect();
+    let names = map.scheduling_names();
     let obs_step = observer::observer_step(
         &fit.model,
         fit.states.as_ref(),

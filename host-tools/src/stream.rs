@@ -40,7 +40,7 @@ use nalgebra::DMatrix;
 
 use crate::data::{stage_writer, DataError, Dataset, StagedWrite, MAX_LINE_BYTES};
 use crate::lpvss::{LpvSs, Signals};
-use crate::model::{describe, Feedback, ModelFile, ModelKind, SignalMap, SAMPLE_INDEX};
+use crate::model::{Feedback, ModelFile, ModelKind, SignalMap, SAMPLE_INDEX};
 use crate::observer;
 use crate::pbsid::stream::{streamable, NotStreamed, PassOne};
 use crate::pbsid::{Centre, PbsidFit};
@@ -554,7 +554,7 @@ pub fn identify_streaming_chunks(
     let mut chosen_opts = opts.clone();
     chosen_opts.centre = chosen;
     let opts = &chosen_opts;
-    let names: Vec<String> = map.scheduling.iter().skip(1).map(|p| describe(p)).collect();
+    let names = map.scheduling_names();
     let mean: Vec<f64> = p_sum.iter().map(|s| s / rows as f64).collect();
     let obs_step = observer::observer_step_streamed(
         &fit.model,

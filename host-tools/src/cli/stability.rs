@@ -44,13 +44,7 @@ pub(super) fn run(a: &StabilityArgs, out: &mut dyn Write) -> Result<(), CliError
             )))
         }
     };
-    let names: Vec<String> = model
-        .signals
-        .scheduling
-        .iter()
-        .skip(1)
-        .map(|p| crate::model::describe(p))
-        .collect();
+    let names = model.signals.scheduling_names();
     let sig = match &a.data {
         Some(p) => Some(model.signals.evaluate(&Dataset::read_csv(p)?)?),
         None => None,

@@ -602,13 +602,7 @@ fn unstable_predictor(model: &ModelFile, val: &Dataset, one_step: &Score) -> Opt
         return None;
     };
     let sig = model.signals.evaluate(val).ok()?;
-    let names: Vec<String> = model
-        .signals
-        .scheduling
-        .iter()
-        .skip(1)
-        .map(|p| crate::model::describe(p))
-        .collect();
+    let names = model.signals.scheduling_names();
     let sbox = crate::observer::SchedBox::from_signals(&names, &sig);
     let rho = crate::observer::max_predictor_radius(ss, &sbox, crate::observer::REPORT_GRID);
     (rho >= 1.0).then(|| {
