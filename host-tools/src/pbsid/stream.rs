@@ -18,7 +18,7 @@ use lpvid::window::write_pbsid_regressor;
 use lpvid::{
     packed_len, stat_vector_len, write_stat_vector, Gram, PbsidDims, Samples, Slab, StatsLayout,
 };
-use nalgebra::{DMatrix, DVector};
+use nalgebra::DMatrix;
 
 use super::error::FitError;
 use super::order::choose_order;
@@ -26,6 +26,7 @@ use super::primal::{dense, primal_regression_svd};
 use super::realize::{solve_abk, solve_cd, split_gram};
 use super::scaling::{scale_stat_gram, scaled_rows, unscale, ChannelSums, Scaling};
 use super::settings::{PbsidFit, PbsidOptions, Reg, Solver};
+use crate::kernel_sweep::dot4;
 use crate::lpvss::Signals;
 
 /// The last p sample rows of the data seen so far (flat rows [u, y, 1, p]), prepended to the
@@ -218,7 +219,7 @@ impl PassOne {
         scale_stat_gram(&dims, StatsLayout::Plain, &scaling, &centre, &mut g)?;
         let (reg, sv, t) = primal_regression_svd(&dims, f, &g, windows, opts)?;
         let (order, order_reason) = choose_order(&sv, windows, opts)?;
-        let t = t.rows(0, order).into_owned();
+        let t_rows = t.rows(0, order).transpose();
         let reason = match opts.solver {
             Solver::Primal => "primal form requested".to_string(),
             _ => format!("primal: q = {q} regressors (+ {r_ft} feedthrough) for {windows} windows"),
@@ -231,7 +232,7 @@ impl PassOne {
             dims,
             q,
             feedthrough: opts.feedthrough,
-            t,
+            t_rows,
             scaling,
             sv,
             order,
@@ -247,12 +248,18 @@ impl PassOne {
     }
 }
 
+/// Windows whose rows pass 2 adds to the realization's Grams as one batch (as the in-memory
+/// realization adds 64 rows per batch).
+const STATE_BLOCK: usize = 64;
+
 /// Pass 2: the states and the normal equations of the realization.
 pub struct PassTwo {
     dims: PbsidDims,
     q: usize,
     feedthrough: bool,
-    t: DMatrix<f64>,
+    /// The first `order` rows of T (x = T z), as columns: each state is one contiguous dot
+    /// product with the regressor.
+    t_rows: DMatrix<f64>,
     scaling: Scaling,
     sv: Vec<f64>,
     order: usize,
@@ -281,29 +288,45 @@ impl PassTwo {
             return Ok(());
         }
         let slab = Slab::new(&all, r, l, m)?;
-        let mut z = vec![0.0; self.q];
-        let nxi = n + r + l;
-        let mut row1 = vec![0.0; n + r_ft + l];
-        let mut row2 = vec![0.0; m * nxi + n];
-        write_pbsid_regressor(&dims, &slab, 0, &mut z);
-        let mut x = &self.t * DVector::from_column_slice(&z);
-        for k in 0..rows - p {
-            write_pbsid_regressor(&dims, &slab, k + 1, &mut z);
-            let x_next = &self.t * DVector::from_column_slice(&z);
-            let (u, y, mu) = (slab.u(k + p), slab.y(k + p), slab.mu(k + p));
-            row1[..n].copy_from_slice(x.as_slice());
-            row1[n..n + r_ft].copy_from_slice(&u[..r_ft]);
-            row1[n + r_ft..].copy_from_slice(y);
-            self.g1.update(&row1)?;
-            for i in 0..m {
-                let blk = &mut row2[i * nxi..(i + 1) * nxi];
-                for (d, v) in blk.iter_mut().zip(x.iter().chain(u).chain(y)) {
-                    *d = mu[i] * v;
+        let (q, nxi) = (self.q, n + r + l);
+        let (d1, d2) = (n + r_ft + l, m * nxi + n);
+        let windows = rows - p;
+        // blocks of windows: the states of the block (and of the window after it), each a
+        // contiguous dot product per row of T, then the rows of both Grams added as one
+        // batch; the last state of a block is computed again as the next block's first
+        let mut z = vec![0.0; q];
+        let mut xb = vec![0.0; n * (STATE_BLOCK + 1)];
+        let mut rows1 = vec![0.0; STATE_BLOCK * d1];
+        let mut rows2 = vec![0.0; STATE_BLOCK * d2];
+        let mut k0 = 0;
+        while k0 < windows {
+            let c = STATE_BLOCK.min(windows - k0);
+            for (j, x) in xb.chunks_exact_mut(n).take(c + 1).enumerate() {
+                write_pbsid_regressor(&dims, &slab, k0 + j, &mut z);
+                for (xi, ti) in x.iter_mut().zip(self.t_rows.column_iter()) {
+                    *xi = dot4(ti.as_slice(), &z);
                 }
             }
-            row2[m * nxi..].copy_from_slice(x_next.as_slice());
-            self.g2.update(&row2)?;
-            x = x_next;
+            for j in 0..c {
+                let k = k0 + j;
+                let (x, x_next) = (&xb[j * n..(j + 1) * n], &xb[(j + 1) * n..(j + 2) * n]);
+                let (u, y, mu) = (slab.u(k + p), slab.y(k + p), slab.mu(k + p));
+                let row1 = &mut rows1[j * d1..(j + 1) * d1];
+                row1[..n].copy_from_slice(x);
+                row1[n..n + r_ft].copy_from_slice(&u[..r_ft]);
+                row1[n + r_ft..].copy_from_slice(y);
+                let row2 = &mut rows2[j * d2..(j + 1) * d2];
+                for i in 0..m {
+                    let blk = &mut row2[i * nxi..(i + 1) * nxi];
+                    for (d, v) in blk.iter_mut().zip(x.iter().chain(u).chain(y)) {
+                        *d = mu[i] * v;
+                    }
+                }
+                row2[m * nxi..].copy_from_slice(x_next);
+            }
+            self.g1.update_batch(&rows1[..c * d1], c)?;
+            self.g2.update_batch(&rows2[..c * d2], c)?;
+            k0 += c;
         }
         Ok(())
     }
