@@ -42,7 +42,7 @@ use crate::data::{stage_writer, DataError, Dataset, StagedWrite, MAX_LINE_BYTES}
 use crate::lpvss::{LpvSs, Signals};
 use crate::model::{Feedback, ModelFile, ModelKind, SignalMap, SAMPLE_INDEX};
 use crate::observer;
-use crate::pbsid::stream::{streamable, NotStreamed, PassOne};
+use crate::pbsid::stream::{streamable, NotStreamed, PassOne, PassTwo};
 use crate::pbsid::{Centre, PbsidFit};
 use crate::pipeline::{pbsid_fit_record, pbsid_warnings, pick_centre, Identified, PbsidSettings};
 use crate::simulate::{estimate_x0, free_run_ss_into, Mode, Score, DIVERGED, X0, X0_SAMPLES};
@@ -553,13 +553,21 @@ pub fn identify_streaming_chunks(
     if twos.is_empty() {
         return None;
     }
-    // pass 2: the realizations
+    // pass 2: the realizations; two centres' on two threads (independent sums, the same
+    // bits as one after the other)
     for_each_chunk(path, chunk_rows, |ds| {
         let sig = map.evaluate(ds).map_err(|_| ())?;
-        for (_, two) in twos.iter_mut() {
+        let update = |two: &mut Option<PassTwo>| {
             if two.as_mut().is_some_and(|t| t.update(&sig).is_err()) {
                 *two = None;
             }
+        };
+        match twos.as_mut_slice() {
+            [(_, a), (_, b)] if crate::linalg::cores() >= 2 => std::thread::scope(|sc| {
+                sc.spawn(|| update(b));
+                update(a);
+            }),
+            all => all.iter_mut().for_each(|(_, two)| update(two)),
         }
         Ok(())
     })?;
