@@ -28,9 +28,16 @@
 //!   other vs side by side;
 //! - `csv_train_and_val_B1`: the validation and training files parsed one after the other
 //!   vs side by side.
+//!
+//! Twenty-ninth session (the streamed fit's pass 2):
+//! - `pass_two_states_B1_p3_8192_windows`: the states x = T z of one chunk's windows, each
+//!   regressor written as pass 2 writes it, by a nalgebra matrix-vector product per window
+//!   (before) vs one contiguous dot product per row of T (now, `pbsid::stream::PassTwo`).
 
 use criterion::{black_box, criterion_group, criterion_main, BenchmarkId, Criterion};
+use lpvid::window::write_pbsid_regressor;
 use lpvid::{stat_vector_len, write_stat_vector, PbsidDims, Slab, StatsLayout};
+use lpvid_host::kernel_sweep::dot4;
 use lpvid_host::linalg::{gram_from_rows_split, schur_spectral_radius, Tridiagonal};
 use lpvid_host::lpvss::Signals;
 use lpvid_host::observer::{
@@ -220,6 +227,55 @@ fn streamed(c: &mut Criterion) {
     group.finish();
 }
 
+fn pass_two_states(c: &mut Criterion) {
+    let dims = PbsidDims::new(2, 3, 3, 3).unwrap();
+    let q = dims.q().unwrap();
+    let n = 4;
+    let exp = systems::b1(8192 + 3, 0.05, 4);
+    let sig = &exp.train;
+    let mut rows = Vec::with_capacity(sig.len() * 9);
+    for k in 0..sig.len() {
+        rows.extend(sig.u.row(k).iter());
+        rows.extend(sig.y.row(k).iter());
+        rows.push(1.0);
+        rows.extend(sig.p.row(k).iter());
+    }
+    let slab = Slab::new(&rows, 2, 3, 4).unwrap();
+    let windows = sig.len() - 3;
+    let t = nalgebra::DMatrix::from_fn(n, q, |i, j| ((i * 7 + j * 13) % 17) as f64 / 17.0 - 0.5);
+    let t_rows = t.transpose();
+    let mut group = c.benchmark_group("pass_two_states_B1_p3_8192_windows");
+    group.sample_size(20);
+    group.bench_function("matrix_vector_per_window(before)", |b| {
+        let mut z = vec![0.0; q];
+        b.iter(|| {
+            let mut acc = 0.0;
+            for k in 0..windows {
+                write_pbsid_regressor(&dims, &slab, k, &mut z);
+                let x = &t * nalgebra::DVector::from_column_slice(&z);
+                acc += x[n - 1];
+            }
+            black_box(acc)
+        })
+    });
+    group.bench_function("dot_per_row_of_T(now)", |b| {
+        let mut z = vec![0.0; q];
+        let mut x = vec![0.0; n];
+        b.iter(|| {
+            let mut acc = 0.0;
+            for k in 0..windows {
+                write_pbsid_regressor(&dims, &slab, k, &mut z);
+                for (xi, ti) in x.iter_mut().zip(t_rows.column_iter()) {
+                    *xi = dot4(ti.as_slice(), &z);
+                }
+                acc += x[n - 1];
+            }
+            black_box(acc)
+        })
+    });
+    group.finish();
+}
+
 fn order_check_regression(c: &mut Criterion) {
     let train = DataFile::from_bytes("b1-train.csv", B1).unwrap();
     let (_, sig) = lpvid_host::pipeline::training_signals(&train.data, 3).unwrap();
@@ -377,6 +433,7 @@ fn benches(c: &mut Criterion) {
     tridiagonal(c);
     gram_halves(c);
     streamed(c);
+    pass_two_states(c);
 }
 
 criterion_group!(process, benches);
