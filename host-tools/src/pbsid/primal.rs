@@ -12,6 +12,7 @@ use super::error::FitError;
 use super::realize::{gamma_k, svd_left};
 use super::ridge::{ridge_solve, NormalForm, RegressionInfo};
 use super::settings::PbsidOptions;
+use crate::kernel_sweep::dot4;
 
 /// Primal path on the (scaled) plain statistics `stats` of w_k = [z_k^p; u_{k+p}; y_{k+p}]:
 /// regression (13) from them, Gamma^p K^p by eq. (14), the SVD of Gamma K Z from
@@ -78,29 +79,10 @@ pub(crate) fn primal_states(
     for k in 0..=windows {
         write_pbsid_regressor(dims, slab, k, &mut z);
         for (i, row) in tt.column_iter().enumerate() {
-            x[(i, k)] = dot(row.as_slice(), &z);
+            x[(i, k)] = dot4(row.as_slice(), &z);
         }
     }
     Ok((sv, x, reg))
-}
-
-/// a . b with four partial sums (vectorised; the summation order differs from a plain loop
-/// only by rounding).
-fn dot(a: &[f64], b: &[f64]) -> f64 {
-    let mut acc = [0.0f64; 4];
-    let (ca, cb) = (a.chunks_exact(4), b.chunks_exact(4));
-    let tail: f64 = ca
-        .remainder()
-        .iter()
-        .zip(cb.remainder())
-        .map(|(x, y)| x * y)
-        .sum();
-    for (x, y) in ca.zip(cb) {
-        for ((s, u), v) in acc.iter_mut().zip(x).zip(y) {
-            *s += u * v;
-        }
-    }
-    (acc[0] + acc[1]) + (acc[2] + acc[3]) + tail
 }
 
 /// The dense symmetric matrix of a Gram's leading `len` rows and columns: row i of the
