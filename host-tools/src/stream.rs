@@ -114,7 +114,9 @@ impl CsvChunks {
         Ok(n > 0)
     }
 
-    fn next(&mut self) -> Result<Option<Dataset>, ()> {
+    /// The next chunk: Ok(None) at the end of the file, Err(()) when the streamed reading
+    /// gives up.
+    fn next_chunk(&mut self) -> Result<Option<Dataset>, ()> {
         if self.done {
             return Ok(None);
         }
@@ -163,6 +165,19 @@ impl CsvChunks {
     }
 }
 
+/// The chunks in order, each Ok or, once, the Err(()) that ends the reading.
+impl Iterator for CsvChunks {
+    type Item = Result<Dataset, ()>;
+
+    fn next(&mut self) -> Option<Self::Item> {
+        let next = self.next_chunk().transpose();
+        if matches!(next, Some(Err(()))) {
+            self.done = true;
+        }
+        next
+    }
+}
+
 fn is_blank(line: &[u8]) -> bool {
     line.iter().all(u8::is_ascii_whitespace)
 }
@@ -188,48 +203,35 @@ fn for_each_chunk(
     mut each: impl FnMut(&Dataset) -> Result<(), ()>,
 ) -> Option<(usize, String)> {
     let mut chunks = CsvChunks::open(path, chunk_rows).ok()?;
-    if crate::linalg::cores() < 2 {
-        loop {
-            match chunks.next() {
-                Ok(Some(ds)) => each(&ds).ok()?,
-                Ok(None) => break,
-                Err(()) => return None,
+    // every chunk through `each` until the file ends (true) or either gives up (false)
+    let mut consume = |all: &mut dyn Iterator<Item = Result<Dataset, ()>>| {
+        for next in all {
+            if !next.is_ok_and(|ds| each(&ds).is_ok()) {
+                return false;
             }
         }
-        return Some((chunks.rows, chunks.fingerprint()));
+        true
+    };
+    if crate::linalg::cores() < 2 {
+        let ok = consume(&mut chunks);
+        return ok.then(|| (chunks.rows, chunks.fingerprint()));
     }
     std::thread::scope(|sc| {
         let (tx, rx) = std::sync::mpsc::sync_channel::<Result<Dataset, ()>>(CHUNKS_AHEAD);
         let reader = sc.spawn(move || {
-            loop {
-                let next = match chunks.next() {
-                    Ok(Some(ds)) => Ok(ds),
-                    Ok(None) => break,
-                    Err(()) => Err(()),
-                };
-                let failed = next.is_err();
+            for next in chunks.by_ref() {
                 // a closed channel: `each` gave up, nothing more is read
-                if tx.send(next).is_err() || failed {
+                if tx.send(next).is_err() {
                     return None;
                 }
             }
             Some((chunks.rows, chunks.fingerprint()))
         });
-        let mut ok = true;
-        for next in rx.iter() {
-            if !next.is_ok_and(|ds| each(&ds).is_ok()) {
-                ok = false;
-                break;
-            }
-        }
+        let ok = consume(&mut rx.iter());
         // the receiver is dropped before the join, so a reader blocked on a full channel ends
         drop(rx);
         let read = reader.join().ok()?;
-        if ok {
-            read
-        } else {
-            None
-        }
+        read.filter(|_| ok)
     })
 }
 

@@ -157,13 +157,7 @@ pub fn realize_from_states(
             }
             xi[n + r + o] = (y[o] - cx) - du;
         }
-        let mu = slab.mu(k + p);
-        for i in 0..m {
-            for (dstv, v) in row[i * nxi..(i + 1) * nxi].iter_mut().zip(&xi) {
-                *dstv = mu[i] * v;
-            }
-        }
-        row[m * nxi..].copy_from_slice(states.column(k + 1).as_slice());
+        state_row(row, slab.mu(k + p), &xi, states.column(k + 1).as_slice());
     })?;
     let (s2_ff, s2_fy) = split_gram(&g2, m * nxi);
     solve_abk(&s2_ff, &s2_fy, c, d, m)
@@ -181,10 +175,36 @@ fn output_gram(
     let n = states.nrows();
     let dim = n + r_ft + slab.y(p).len();
     batched_gram(dim, states.ncols() - 1, |k, row| {
-        row[..n].copy_from_slice(states.column(k).as_slice());
-        row[n..n + r_ft].copy_from_slice(&slab.u(k + p)[..r_ft]);
-        row[n + r_ft..].copy_from_slice(slab.y(k + p));
+        output_row(
+            row,
+            states.column(k).as_slice(),
+            slab.u(k + p),
+            slab.y(k + p),
+            r_ft,
+        );
     })
+}
+
+/// One row [x_k; u_k (its first `r_ft` entries); y_k] of the output equation's normal
+/// equations (section 4.3), in memory and streamed (`super::stream::PassTwo`).
+pub(crate) fn output_row(row: &mut [f64], x: &[f64], u: &[f64], y: &[f64], r_ft: usize) {
+    let n = x.len();
+    row[..n].copy_from_slice(x);
+    row[n..n + r_ft].copy_from_slice(&u[..r_ft]);
+    row[n + r_ft..].copy_from_slice(y);
+}
+
+/// One row [mu_k (x) xi_k; x_{k+1}] of the state equation's normal equations (section 4.3):
+/// xi_k = [x; u; e] in [`realize_from_states`], [x; u; y] in [`OrderSweep`] and streamed
+/// (mapped to e after the sums).
+pub(crate) fn state_row(row: &mut [f64], mu: &[f64], xi: &[f64], x_next: &[f64]) {
+    let nxi = xi.len();
+    for (i, w) in mu.iter().enumerate() {
+        for (dst, v) in row[i * nxi..(i + 1) * nxi].iter_mut().zip(xi) {
+            *dst = w * v;
+        }
+    }
+    row[mu.len() * nxi..].copy_from_slice(x_next);
 }
 
 /// Rows per batch update of [`realize_from_states`]' normal equations.
@@ -662,13 +682,7 @@ impl OrderSweep {
             v[..nmax].copy_from_slice(states.column(k).as_slice());
             v[nmax..nmax + r].copy_from_slice(slab.u(k + p));
             v[nmax + r..].copy_from_slice(slab.y(k + p));
-            let mu = slab.mu(k + p);
-            for i in 0..m {
-                for (dst, x) in row[i * dv..(i + 1) * dv].iter_mut().zip(&v) {
-                    *dst = mu[i] * x;
-                }
-            }
-            row[m * dv..].copy_from_slice(states.column(k + 1).as_slice());
+            state_row(row, slab.mu(k + p), &v, states.column(k + 1).as_slice());
         })?;
         let full = |g: &Gram<f64, Vec<f64>>| {
             let d = g.dim();

@@ -23,7 +23,7 @@ use nalgebra::DMatrix;
 use super::error::FitError;
 use super::order::choose_order;
 use super::primal::{dense, primal_regression_svd};
-use super::realize::{solve_abk, solve_cd, split_gram};
+use super::realize::{output_row, solve_abk, solve_cd, split_gram, state_row};
 use super::scaling::{scale_stat_gram, scaled_rows, unscale, ChannelSums, Scaling};
 use super::settings::{PbsidFit, PbsidOptions, Reg, Solver};
 use crate::kernel_sweep::dot4;
@@ -291,41 +291,40 @@ impl PassTwo {
         let (q, nxi) = (self.q, n + r + l);
         let (d1, d2) = (n + r_ft + l, m * nxi + n);
         let windows = rows - p;
-        // blocks of windows: the states of the block (and of the window after it), each a
-        // contiguous dot product per row of T, then the rows of both Grams added as one
-        // batch; the last state of a block is computed again as the next block's first
+        // blocks of windows: the states of the block and of the window after it, each a
+        // contiguous dot product per row of T (the one after is the next block's first),
+        // then the rows of both Grams added as one batch
+        let state = |k: usize, x: &mut [f64], z: &mut [f64]| {
+            write_pbsid_regressor(&dims, &slab, k, z);
+            for (xi, ti) in x.iter_mut().zip(self.t_rows.column_iter()) {
+                *xi = dot4(ti.as_slice(), z);
+            }
+        };
         let mut z = vec![0.0; q];
         let mut xb = vec![0.0; n * (STATE_BLOCK + 1)];
+        let mut xi = vec![0.0; nxi];
         let mut rows1 = vec![0.0; STATE_BLOCK * d1];
         let mut rows2 = vec![0.0; STATE_BLOCK * d2];
+        state(0, &mut xb[..n], &mut z);
         let mut k0 = 0;
         while k0 < windows {
             let c = STATE_BLOCK.min(windows - k0);
-            for (j, x) in xb.chunks_exact_mut(n).take(c + 1).enumerate() {
-                write_pbsid_regressor(&dims, &slab, k0 + j, &mut z);
-                for (xi, ti) in x.iter_mut().zip(self.t_rows.column_iter()) {
-                    *xi = dot4(ti.as_slice(), &z);
-                }
+            for (j, x) in xb.chunks_exact_mut(n).take(c + 1).enumerate().skip(1) {
+                state(k0 + j, x, &mut z);
             }
             for j in 0..c {
                 let k = k0 + j;
                 let (x, x_next) = (&xb[j * n..(j + 1) * n], &xb[(j + 1) * n..(j + 2) * n]);
                 let (u, y, mu) = (slab.u(k + p), slab.y(k + p), slab.mu(k + p));
-                let row1 = &mut rows1[j * d1..(j + 1) * d1];
-                row1[..n].copy_from_slice(x);
-                row1[n..n + r_ft].copy_from_slice(&u[..r_ft]);
-                row1[n + r_ft..].copy_from_slice(y);
-                let row2 = &mut rows2[j * d2..(j + 1) * d2];
-                for i in 0..m {
-                    let blk = &mut row2[i * nxi..(i + 1) * nxi];
-                    for (d, v) in blk.iter_mut().zip(x.iter().chain(u).chain(y)) {
-                        *d = mu[i] * v;
-                    }
-                }
-                row2[m * nxi..].copy_from_slice(x_next);
+                output_row(&mut rows1[j * d1..(j + 1) * d1], x, u, y, r_ft);
+                xi[..n].copy_from_slice(x);
+                xi[n..n + r].copy_from_slice(u);
+                xi[n + r..].copy_from_slice(y);
+                state_row(&mut rows2[j * d2..(j + 1) * d2], mu, &xi, x_next);
             }
             self.g1.update_batch(&rows1[..c * d1], c)?;
             self.g2.update_batch(&rows2[..c * d2], c)?;
+            xb.copy_within(c * n..(c + 1) * n, 0);
             k0 += c;
         }
         Ok(())
