@@ -455,7 +455,7 @@ fn check_order(
         "order": n,
         "held_out": held,
         "free_run": vafs,
-        "rule": format!("an order is replaced by order + 1 or + 2 when its held-out free-run error is more than {} times theirs and {} above (normalised MSE)", pbsid::FAR_WORSE_RATIO, pbsid::FAR_WORSE_GAP),
+        "rule": format!("an order is replaced by order + 1 or + 2 when its held-out free-run error is more than {} times theirs, or more than {} times theirs and {} above (normalised MSE)", pbsid::FAR_WORSE_FACTOR, pbsid::FAR_WORSE_RATIO, pbsid::FAR_WORSE_GAP),
     });
     if n == n0 {
         return Ok((fit, opts.clone(), Some(record)));
