@@ -454,6 +454,33 @@ impl Catalogue<'_, '_> {
                     sp,
                 );
             }
+            // an even and an odd channel (u^2, |u| u) refined from the model's own structure
+            // refined (refit::fit_nested), judged against that refined structure: the channels
+            // above, fitted by PBSID, must also beat it (effects::needs_refined_null), and a
+            // weak nonlinearity whose gain the subspace estimate's bias hides is found here
+            let added: Vec<Vec<Factor>> = [
+                vec![fac(&f.col, 2, f.delay, None)],
+                vec![fac(&f.col, 1, f.delay, Some(FactorFn::Abs)), f.clone()],
+            ]
+            .into_iter()
+            .enumerate()
+            .filter(|(v, prod)| !(map.inputs.contains(prod) || (one_sign && *v > 0)))
+            .map(|(_, prod)| prod)
+            .collect();
+            if !added.is_empty() {
+                let mut sp = spec.clone();
+                sp.signals.inputs.extend(added.iter().cloned());
+                sp.nested_in = Some(Box::new(refined_null(spec)));
+                let names: Vec<String> = added.iter().map(|p| describe(p)).collect();
+                self.push(
+                    Effect::InputNonlinearity,
+                    format!(
+                        "input channels {}, refined from the model's own structure refined (output error)",
+                        names.join(" and ")
+                    ),
+                    sp,
+                );
+            }
         }
     }
 

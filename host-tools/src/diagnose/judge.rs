@@ -10,6 +10,7 @@
 //! signals linearised ([`output::linearised_null`]), for a periodic-disturbance variant the
 //! same fit without its sinusoids ([`catalogue::without_sinusoids`]), that structure refined by output error
 //! from the best of its starts ([`output::refined_structure`]; the scheduling effects,
+//! unused-signal and input-nonlinearity,
 //! [`effects::needs_refined_null`]; coloured-noise, order-too-low and input-delay by
 //! [`states::states_check`]) and the memory rule ([`memory::forgets_as_null`]). A rule is
 //! tested only on a variant that passed the ones before it. An effect is a finding when one
@@ -358,7 +359,7 @@ impl Bench<'_> {
         if !self.beaten(j.vs_without, short) {
             return;
         }
-        // a scheduling variant judged against the model's structure refit must also beat
+        // a scheduling, logged-signal or input-channel variant judged against the model's structure refit must also beat
         // that structure refined by output error (effects::needs_refined_null)
         if effects::needs_refined_null(s) {
             j.vs_refined = s.eval.as_ref().and_then(|e| {
@@ -654,9 +655,14 @@ impl Judgement {
                 c.text.clone()
             } else if let Some(v) = self.vs_refined.filter(|v| !beaten(Some(*v))) {
                 format!(
-                "the model's own structure refined by output error removes that error as well: against it this variant explains {:.1} % of the held-out error (p = {:.2e}; a finding must improve on it as on the structure's refit); what it removes is the bias of the subspace estimate of the model's own structure, not a missing scheduling dependence",
+                "the model's own structure refined by output error removes that error as well: against it this variant explains {:.1} % of the held-out error (p = {:.2e}; a finding must improve on it as on the structure's refit); what it removes is the bias of the subspace estimate of the model's own structure, not {}",
                 100.0 * v.0,
-                v.1
+                v.1,
+                match self.effect {
+                    Effect::UnusedSignal => "a signal the model lacks",
+                    Effect::InputNonlinearity => "a static nonlinearity of the input",
+                    _ => "a missing scheduling dependence",
+                }
             )
             } else if let Some(m) = self.memory.filter(|_| !self.passed) {
                 format!(

@@ -629,8 +629,9 @@ impl Refinement {
 /// scheduling effects' refits). `null` is fitted first ([`fit_spec`]; it is refined: the
 /// output-error refinement of [`crate::pipeline::fit_map`]); its model is padded with the
 /// coefficients `spec` adds, all zero: C^(i), D^(i) for i > 1 of a scheduled output equation
-/// y = sum_i mu^(i) (C^(i) x + D^(i) u), and A^(i), B^(i), K^(i) of scheduling functions
-/// appended to the null's (a p1^2 basis function); the padded model IS the null's model, so
+/// y = sum_i mu^(i) (C^(i) x + D^(i) u), A^(i), B^(i), K^(i) of scheduling functions
+/// appended to the null's (a p1^2 basis function), and the B^(i), D^(i) columns of input
+/// channels appended to the null's (u1^2); the padded model IS the null's model, so
 /// the Levenberg-Marquardt refinement of the whole free-run error
 /// ([`crate::refine::refine_d_columns`], same D columns and iteration budget as the null's)
 /// starts at the null's training error and accepts only steps that lower it: the candidate
@@ -667,7 +668,20 @@ pub fn fit_nested(
             "a nested refinement adds scheduling functions after the null's".into(),
         ));
     }
+    let r = spec.signals.inputs.len();
+    let r0 = null.signals.inputs.len();
+    if r < r0 || spec.signals.inputs[..r0] != null.signals.inputs[..] {
+        return Err(RefitError::Unsupported(
+            "a nested refinement adds input channels after the null's".into(),
+        ));
+    }
     let mut start = ss.clone();
+    // added input channels: zero columns of every B^(i) and D^(i)
+    for mats in [&mut start.b, &mut start.d] {
+        for mat in mats.iter_mut() {
+            *mat = std::mem::take(mat).resize_horizontally(r, 0.0);
+        }
+    }
     let zero = |v: &mut Vec<DMatrix<f64>>| {
         let (r, c) = v[0].shape();
         v.resize(m, DMatrix::zeros(r, c));
