@@ -10,7 +10,7 @@
 //! signals linearised ([`output::linearised_null`]), for a periodic-disturbance variant the
 //! same fit without its sinusoids ([`catalogue::without_sinusoids`]), that structure refined by output error
 //! from the best of its starts ([`output::refined_structure`]; the scheduling effects,
-//! unused-signal and input-nonlinearity,
+//! unused-signal, input-nonlinearity and coloured-noise,
 //! [`effects::needs_refined_null`]; coloured-noise, order-too-low and input-delay by
 //! [`states::states_check`]) and the memory rule ([`memory::forgets_as_null`]). A rule is
 //! tested only on a variant that passed the ones before it. An effect is a finding when one
@@ -661,6 +661,7 @@ impl Judgement {
                 match self.effect {
                     Effect::UnusedSignal => "a signal the model lacks",
                     Effect::InputNonlinearity => "a static nonlinearity of the input",
+                    Effect::ColouredNoise => "coloured noise",
                     _ => "a missing scheduling dependence",
                 }
             )

@@ -367,6 +367,22 @@ pub fn number_after(text: &str, marker: &str) -> f64 {
         .unwrap_or_else(|| panic!("a number after {marker:?} in {text}"))
 }
 
+/// Assert that `why`, the rule that blocked a `coloured-noise` finding, is one of the two that
+/// judge a noise model against the model's structure refined by output error: that
+/// structure's one-step error is lower (`effects::needs_refined_null`, tested first) or its
+/// free-run residual is white with a Ljung-Box p-value of at least `white_p`
+/// (`states::states_check`).
+pub fn assert_refined_not_coloured(why: &str, white_p: f64) {
+    if why.contains("is white (Ljung-Box p = ") {
+        let p = number_after(why, "Ljung-Box p = ");
+        assert!(p >= white_p, "{p}");
+    } else {
+        assert!(why.contains("not coloured noise"), "{why}");
+        let against = number_after(why, "this variant explains ");
+        assert!(against < 0.0, "{against}");
+    }
+}
+
 /// Draw the plant of `effect` with `seed` (records of `n` samples), identify it with the
 /// user's `lpvid pbsid` options and diagnose it with `--fix` (one step): the user's model and
 /// the outcome, for tests that look into the report.
