@@ -33,7 +33,8 @@ pub struct PbsidArgs {
     /// Future window f <= p (row blocks of Gamma K Z used for the SVD); default p.
     #[arg(long)]
     pub future: Option<usize>,
-    /// Model order, or `auto` to take it from the singular-value gap.
+    /// Model order, or `auto`: the singular-value gap, then one or two more states while their
+    /// held-out free-run error is far lower (under half, or under 1/1.25 and 5 VAF points).
     #[arg(long, default_value = "auto")]
     pub order: Order,
     /// Solve the regression in its kernel (dual) form, never forming Z (kernel paper section 5).
