@@ -435,22 +435,23 @@ impl Catalogue<'_, '_> {
                     ),
                 ));
             }
-            for (v, prod) in [
+            // u^2, |u| u, sign(u): those not in the model and, for an input of one sign, u^2 alone
+            let tried: Vec<Vec<Factor>> = [
                 vec![fac(&f.col, 2, f.delay, None)],
                 vec![fac(&f.col, 1, f.delay, Some(FactorFn::Abs)), f.clone()],
                 vec![fac(&f.col, 1, f.delay, Some(FactorFn::Sign))],
             ]
             .into_iter()
             .enumerate()
-            {
-                if map.inputs.contains(&prod) || (one_sign && v > 0) {
-                    continue;
-                }
+            .filter(|(v, prod)| !(map.inputs.contains(prod) || (one_sign && *v > 0)))
+            .map(|(_, prod)| prod)
+            .collect();
+            for prod in &tried {
                 let mut sp = spec.clone();
                 sp.signals.inputs.push(prod.clone());
                 self.push(
                     Effect::InputNonlinearity,
-                    format!("input channel {}", describe(&prod)),
+                    format!("input channel {}", describe(prod)),
                     sp,
                 );
             }
@@ -458,18 +459,13 @@ impl Catalogue<'_, '_> {
             // refined (refit::fit_nested), judged against that refined structure: the channels
             // above, fitted by PBSID, must also beat it (effects::needs_refined_null), and a
             // weak nonlinearity whose gain the subspace estimate's bias hides is found here
-            let added: Vec<Vec<Factor>> = [
-                vec![fac(&f.col, 2, f.delay, None)],
-                vec![fac(&f.col, 1, f.delay, Some(FactorFn::Abs)), f.clone()],
-            ]
-            .into_iter()
-            .enumerate()
-            .filter(|(v, prod)| !(map.inputs.contains(prod) || (one_sign && *v > 0)))
-            .map(|(_, prod)| prod)
-            .collect();
+            let added: Vec<&Vec<Factor>> = tried
+                .iter()
+                .filter(|prod| prod[0].func != Some(FactorFn::Sign))
+                .collect();
             if !added.is_empty() {
                 let mut sp = spec.clone();
-                sp.signals.inputs.extend(added.iter().cloned());
+                sp.signals.inputs.extend(added.iter().map(|p| (*p).clone()));
                 sp.nested_in = Some(Box::new(refined_null(spec)));
                 let names: Vec<String> = added.iter().map(|p| describe(p)).collect();
                 self.push(

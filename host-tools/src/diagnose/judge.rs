@@ -359,8 +359,9 @@ impl Bench<'_> {
         if !self.beaten(j.vs_without, short) {
             return;
         }
-        // a scheduling, logged-signal or input-channel variant judged against the model's structure refit must also beat
-        // that structure refined by output error (effects::needs_refined_null)
+        // a variant fitted by PBSID and judged against the model's structure refit must also
+        // beat that structure refined by output error (effects::needs_refined_null: the
+        // scheduling effects, unused-signal, input-nonlinearity, coloured-noise)
         if effects::needs_refined_null(s) {
             j.vs_refined = s.eval.as_ref().and_then(|e| {
                 let r = refs.refined(self)?;

@@ -668,9 +668,8 @@ pub fn fit_nested(
             "a nested refinement adds scheduling functions after the null's".into(),
         ));
     }
-    let r = spec.signals.inputs.len();
-    let r0 = null.signals.inputs.len();
-    if r < r0 || spec.signals.inputs[..r0] != null.signals.inputs[..] {
+    let (inputs, inputs0) = (spec.signals.inputs.len(), null.signals.inputs.len());
+    if inputs < inputs0 || spec.signals.inputs[..inputs0] != null.signals.inputs[..] {
         return Err(RefitError::Unsupported(
             "a nested refinement adds input channels after the null's".into(),
         ));
@@ -679,7 +678,7 @@ pub fn fit_nested(
     // added input channels: zero columns of every B^(i) and D^(i)
     for mats in [&mut start.b, &mut start.d] {
         for mat in mats.iter_mut() {
-            *mat = std::mem::take(mat).resize_horizontally(r, 0.0);
+            *mat = std::mem::take(mat).resize_horizontally(inputs, 0.0);
         }
     }
     let zero = |v: &mut Vec<DMatrix<f64>>| {
