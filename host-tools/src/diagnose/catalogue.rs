@@ -252,10 +252,23 @@ impl Catalogue<'_, '_> {
         } else {
             let mut sp = spec.clone();
             sp.signals.inputs.push(vec![]);
+            // the same channel refined from the model's own structure refined
+            // (refit::fit_nested), judged against that refined structure: when the inputs'
+            // mean is not zero, an offset the model lacks biases its PBSID estimate, and the
+            // PBSID refit with the constant channel is not the offset alone
+            let mut nested = sp.clone();
+            nested.nested_in = Some(Box::new(refined_null(spec)));
             self.push(
                 Effect::OutputOffset,
                 "a constant input channel [] (an offset through B^(i) and D)".into(),
                 sp,
+            );
+            self.push(
+                Effect::OutputOffset,
+                "a constant input channel [] (an offset through B^(i) and D), refined from \
+                 the model's own structure refined (output error)"
+                    .into(),
+                nested,
             );
         }
     }
@@ -880,10 +893,24 @@ impl Catalogue<'_, '_> {
             any_logged = true;
             let mut sp = spec.clone();
             sp.signals.inputs.push(vec![Factor::col(&name)]);
+            // the same channel refined from the model's own structure refined
+            // (refit::fit_nested), judged against that refined structure: the subspace refit
+            // above must beat that structure too (effects::needs_refined_null), and a column
+            // whose slow response a short past window biases is found here
+            let mut nested = sp.clone();
+            nested.nested_in = Some(Box::new(refined_null(spec)));
             self.push(
                 Effect::UnusedSignal,
                 format!("logged column {name} as an input channel"),
                 sp,
+            );
+            self.push(
+                Effect::UnusedSignal,
+                format!(
+                    "logged column {name} as an input channel, refined from the model's own \
+                     structure refined (output error)"
+                ),
+                nested,
             );
             let mut sp = spec.clone();
             sp.signals.scheduling.push(vec![Factor::col(&name)]);
