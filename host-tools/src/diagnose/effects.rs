@@ -53,7 +53,7 @@ use super::refit::{fit_spec, Fitted, Spec};
 use super::residual::{ResidualReport, ALPHA};
 use super::stats::{batch_count, batch_log_ratios, mean_t, signed_rank_p};
 use crate::data::{DataError, Dataset};
-use crate::model::{ModelFile, ModelKind};
+use crate::model::{ModelFile, ModelKind, SignalMap};
 use crate::pbsid::Order;
 use crate::simulate::{simulate_signals, Mode};
 
@@ -523,8 +523,29 @@ pub fn needs_refined_null(s: &Scored) -> bool {
 
 /// Coefficients of a fitted model that are free: the non-zero entries of A^(i), B^(i),
 /// C^(i), D^(i) (and K^(i) for a one-step metric) of an LPV-SS model (a structural zero, e.g.
-/// D of `--no-feedthrough`, is not counted), the a and b coefficients of an LPV-ARX model.
+/// D of `--no-feedthrough`, is not counted), the a and b coefficients of an LPV-ARX model;
+/// and one for each input channel or scheduling function that reads the model's own output
+/// ([`own_output_signals`]): its function f(y) was chosen on the data among the
+/// output-nonlinearity candidates, a degree of freedom the coefficients do not show. Without
+/// it a Lur'e channel, which enters through B alone (the output equation cannot need the
+/// output it computes), counted one coefficient fewer than a constant channel with its D
+/// entry, and parsimony named a sqrt|y1| feedback in place of a planted output offset that
+/// it did not beat (a chain of tanks with a heater input, docs/bench-diagnose.md).
 pub fn parameter_count(model: &ModelFile, mode: Mode) -> usize {
+    own_output_signals(&model.signals) + coefficient_count(model, mode)
+}
+
+/// Input channels and scheduling functions of `map` that read the model's own output.
+pub fn own_output_signals(map: &SignalMap) -> usize {
+    map.inputs
+        .iter()
+        .chain(&map.scheduling)
+        .filter(|prod| prod.iter().any(|f| map.own_output(f).is_some()))
+        .count()
+}
+
+/// The free coefficients of [`parameter_count`], without the own-output functions.
+fn coefficient_count(model: &ModelFile, mode: Mode) -> usize {
     let nz = |ms: &[DMatrix<f64>]| {
         ms.iter()
             .map(|m| m.iter().filter(|v| **v != 0.0).count())
@@ -930,4 +951,31 @@ pub fn versus_larger(loss_larger: &[f64], loss1: &[f64]) -> Option<(f64, f64)> {
         .iter()
         .all(|v| v.is_finite())
         .then(|| versus(loss_larger, loss1))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::model::Factor;
+
+    /// A Lur'e channel sqrt|y1| and a quasi-LPV function |y1| count one each for the choice
+    /// of f(y); a constant channel, a plain input and u1^2 count none.
+    #[test]
+    fn own_output_signals_count_the_chosen_functions() {
+        let mut map = SignalMap::standard(1, 1, 1);
+        assert_eq!(own_output_signals(&map), 0);
+        let mut sq = Factor::col("u1");
+        sq.pow = 2.0;
+        map.inputs.push(vec![sq]);
+        map.inputs.push(vec![]);
+        assert_eq!(own_output_signals(&map), 0);
+        let mut root = Factor::col("y1");
+        root.pow = 0.5;
+        map.inputs.push(vec![root]);
+        assert_eq!(own_output_signals(&map), 1);
+        let mut abs = Factor::col("y1");
+        abs.func = Some(crate::model::FactorFn::Abs);
+        map.scheduling.push(vec![abs]);
+        assert_eq!(own_output_signals(&map), 2);
+    }
 }
