@@ -9,8 +9,6 @@
 mod diagnose_support;
 
 use lpvid_host::data::Dataset;
-use lpvid_host::diagnose::{diagnose, Options, Outcome};
-use lpvid_host::model::ModelFile;
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
 use rand_distr::{Distribution, StandardNormal};
@@ -58,51 +56,12 @@ fn oscillator(seed: u64) -> (Dataset, Dataset, String) {
         *v += noise * sd * e;
     }
     let t: Vec<f64> = (0..n).map(|k| 0.01 * k as f64).collect();
-    let names: Vec<String> = ["t", "u1", "y1", "p1", "w"].map(String::from).to_vec();
-    let cut = |r: std::ops::Range<usize>, source: &str| Dataset {
-        source: source.into(),
-        names: names.clone(),
-        cols: [&t, &u, &y, &p, &w]
-            .iter()
-            .map(|c| c[r.clone()].to_vec())
-            .collect(),
-    };
+    let (train, val) = diagnose_support::train_val([&t, &u, &y, &p, &w], 2000);
     let words = format!(
         "wn {wn:.2} rad/sample, zeta {zeta:.2}, stiffness 1 + {a:.2} p1, output gain 1 + {c:.2} p1, p1 period {period:.0}, noise {:.1} %",
         100.0 * noise
     );
-    (cut(0..2000, "train.csv"), cut(2000..n, "val.csv"), words)
-}
-
-/// `lpvid pbsid --past 7 --order 2` on the training record, then `diagnose --fix`.
-fn identify_and_diagnose(train: &Dataset, val: &Dataset) -> (ModelFile, Outcome) {
-    let dir = tempfile::tempdir().unwrap();
-    let tp = dir.path().join("train.csv");
-    let mp = dir.path().join("model.json");
-    train.write_csv(&tp).unwrap();
-    let cli: Vec<String> = [
-        "lpvid",
-        "pbsid",
-        "--train",
-        tp.to_str().unwrap(),
-        "--past",
-        "7",
-        "--order",
-        "2",
-        "--out",
-        mp.to_str().unwrap(),
-    ]
-    .map(String::from)
-    .to_vec();
-    lpvid_host::cli::run(cli, &mut Vec::new()).unwrap();
-    let model = ModelFile::read(&mp).unwrap();
-    let opts = Options {
-        fix: true,
-        max_steps: 1,
-        threads: 2,
-    };
-    let out = diagnose(&model, train, val, &opts).unwrap();
-    (model, out)
+    (train, val, words)
 }
 
 /// On `seeds`, nothing but the planted scheduled output gain is applied; returns on how many
@@ -112,7 +71,7 @@ fn logged_column_not_named(seeds: impl IntoIterator<Item = u64>) -> usize {
     let mut blocked_by_refined = 0;
     for seed in seeds {
         let (train, val, words) = oscillator(seed);
-        let (_, out) = identify_and_diagnose(&train, &val);
+        let (_, out) = diagnose_support::identify_and_diagnose(&train, &val, 7, 2);
         let applied: Vec<&str> = out.report.applied.iter().map(|a| a.effect).collect();
         println!("seed {seed}: {words}; applied {applied:?}");
         for f in &out.report.findings {

@@ -15,8 +15,6 @@
 mod diagnose_support;
 
 use lpvid_host::data::Dataset;
-use lpvid_host::diagnose::{diagnose, Options, Outcome};
-use lpvid_host::model::ModelFile;
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
 use rand_distr::{Distribution, StandardNormal};
@@ -105,52 +103,13 @@ fn tank_chain(seed: u64, planted: Planted) -> (Dataset, Dataset, String) {
         *v += noise * sd * e;
     }
     let t: Vec<f64> = (0..n).map(|k| k as f64).collect();
-    let names: Vec<String> = ["t", "u1", "y1", "p1", "w"].map(String::from).to_vec();
-    let cut = |r: std::ops::Range<usize>, source: &str| Dataset {
-        source: source.into(),
-        names: names.clone(),
-        cols: [&t, &u, &y, &p, &w]
-            .iter()
-            .map(|c| c[r.clone()].to_vec())
-            .collect(),
-    };
+    let (train, val) = diagnose_support::train_val([&t, &u, &y, &p, &w], 3000);
     let words = format!(
         "{tanks} tank(s), {} heater, transport {af:.2} p1, loss {al:.3}, offset {off:+.2}, inlet gain {gw:.2}, noise {:.1} %",
         if binary { "two-level" } else { "staircase" },
         100.0 * noise
     );
-    (cut(0..3000, "train.csv"), cut(3000..n, "val.csv"), words)
-}
-
-/// `lpvid pbsid --past 7 --order <tanks>` on the training record, then `diagnose --fix`.
-fn identify_and_diagnose(train: &Dataset, val: &Dataset, order: usize) -> (ModelFile, Outcome) {
-    let dir = tempfile::tempdir().unwrap();
-    let tp = dir.path().join("train.csv");
-    let mp = dir.path().join("model.json");
-    train.write_csv(&tp).unwrap();
-    let cli: Vec<String> = [
-        "lpvid",
-        "pbsid",
-        "--train",
-        tp.to_str().unwrap(),
-        "--past",
-        "7",
-        "--order",
-        &order.to_string(),
-        "--out",
-        mp.to_str().unwrap(),
-    ]
-    .map(String::from)
-    .to_vec();
-    lpvid_host::cli::run(cli, &mut Vec::new()).unwrap();
-    let model = ModelFile::read(&mp).unwrap();
-    let opts = Options {
-        fix: true,
-        max_steps: 1,
-        threads: 2,
-    };
-    let out = diagnose(&model, train, val, &opts).unwrap();
-    (model, out)
+    (train, val, words)
 }
 
 /// The plant of `seed` with `planted`: `effect` is the one effect applied and lowers the
@@ -168,7 +127,7 @@ fn named(seed: u64, planted: Planted, effect: &str, min_ratio: f64) -> f64 {
         val.write_csv(std::path::Path::new(&format!("{stem}.val.csv")))
             .unwrap();
     }
-    let (_, out) = identify_and_diagnose(&train, &val, tanks);
+    let (_, out) = diagnose_support::identify_and_diagnose(&train, &val, 7, tanks);
     let applied: Vec<&str> = out.report.applied.iter().map(|a| a.effect).collect();
     let ratio = out
         .report

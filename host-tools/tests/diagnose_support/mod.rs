@@ -336,6 +336,57 @@ pub fn run_case(name: &str, seed: u64) -> Case {
     }
 }
 
+/// The columns `t, u1, y1, p1, w` cut into a training record (rows before `cut`, source
+/// `train.csv`) and a validation record (the rest, `val.csv`).
+pub fn train_val(cols: [&[f64]; 5], cut: usize) -> (Dataset, Dataset) {
+    let names: Vec<String> = ["t", "u1", "y1", "p1", "w"].map(String::from).to_vec();
+    let part = |r: std::ops::Range<usize>, source: &str| Dataset {
+        source: source.into(),
+        names: names.clone(),
+        cols: cols.iter().map(|c| c[r.clone()].to_vec()).collect(),
+    };
+    let n = cols[0].len();
+    (part(0..cut, "train.csv"), part(cut..n, "val.csv"))
+}
+
+/// `lpvid pbsid --past PAST --order ORDER` on `train` (the command line, on a temporary
+/// file), then `diagnose --fix` (one step, two threads) with `val` held out: the user's steps
+/// on the plants of the generators of other shapes (`diagnose_logged`, `diagnose_tank_chain`).
+pub fn identify_and_diagnose(
+    train: &Dataset,
+    val: &Dataset,
+    past: usize,
+    order: usize,
+) -> (ModelFile, Outcome) {
+    let dir = tempfile::tempdir().unwrap();
+    let tp = dir.path().join("train.csv");
+    let mp = dir.path().join("model.json");
+    train.write_csv(&tp).unwrap();
+    let cli: Vec<String> = [
+        "lpvid",
+        "pbsid",
+        "--train",
+        tp.to_str().unwrap(),
+        "--past",
+        &past.to_string(),
+        "--order",
+        &order.to_string(),
+        "--out",
+        mp.to_str().unwrap(),
+    ]
+    .map(String::from)
+    .to_vec();
+    lpvid_host::cli::run(cli, &mut Vec::new()).unwrap();
+    let model = ModelFile::read(&mp).unwrap();
+    let opts = Options {
+        fix: true,
+        max_steps: 1,
+        threads: 2,
+    };
+    let out = diagnose(&model, train, val, &opts).unwrap();
+    (model, out)
+}
+
 /// Mean square error of a model on data (free run or one-step), mean over outputs.
 pub fn mse(model: &ModelFile, ds: &Dataset, mode: Mode) -> f64 {
     let (y, yh) = simulate(model, ds, mode).unwrap();
