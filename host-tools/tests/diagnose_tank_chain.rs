@@ -45,8 +45,8 @@ enum Planted {
 }
 
 /// The chain's training and validation records (3000 and 1500 samples, one clock) with
-/// `planted`, and a description of the draw.
-fn tank_chain(seed: u64, planted: Planted) -> (Dataset, Dataset, String) {
+/// `planted`, a description of the draw and the number of tanks (the order the user gives).
+fn tank_chain(seed: u64, planted: Planted) -> (Dataset, Dataset, String, usize) {
     let mut rng = StdRng::seed_from_u64(seed);
     let n: usize = 4500;
     let tanks = rng.gen_range(1..=3usize);
@@ -109,15 +109,14 @@ fn tank_chain(seed: u64, planted: Planted) -> (Dataset, Dataset, String) {
         if binary { "two-level" } else { "staircase" },
         100.0 * noise
     );
-    (train, val, words)
+    (train, val, words, tanks)
 }
 
 /// The plant of `seed` with `planted`: `effect` is the one effect applied and lowers the
 /// held-out free-run error at least `min_ratio` times (nothing is applied on the clean
 /// plant). Returns the error ratio.
 fn named(seed: u64, planted: Planted, effect: &str, min_ratio: f64) -> f64 {
-    let tanks = StdRng::seed_from_u64(seed).gen_range(1..=3usize);
-    let (train, val, words) = tank_chain(seed, planted);
+    let (train, val, words, tanks) = tank_chain(seed, planted);
     // LPVID_TANK_DUMP=DIR writes the records, to trace a case through the command line
     if let Ok(dir) = std::env::var("LPVID_TANK_DUMP") {
         let stem = format!("{dir}/{effect}{seed}");

@@ -29,6 +29,9 @@ pub const SMOOTH_POLES: [f64; 2] = [0.5, 0.8];
 /// 2.71 after eight) and the rounds stop early once p^ settles.
 pub const LATENT_ROUNDS: usize = 8;
 
+/// The words a nested variant's detail ends with ([`Catalogue::push_nested`]).
+const NESTED: &str = ", refined from the model's own structure refined (output error)";
+
 fn plain(prod: &[Factor]) -> Option<&Factor> {
     match prod {
         [f] if f.pow == 1.0 && f.func.is_none() => Some(f),
@@ -229,6 +232,14 @@ impl Catalogue<'_, '_> {
         })
     }
 
+    /// Push `spec` nested in the model's own structure refined by output error
+    /// ([`refined_null`]; fitted by [`super::refit::fit_nested`] and judged against that
+    /// refined structure), its detail followed by [`NESTED`].
+    fn push_nested(&mut self, effect: Effect, detail: &str, mut spec: Spec) {
+        spec.nested_in = Some(Box::new(refined_null(self.ctx.spec)));
+        self.push(effect, format!("{detail}{NESTED}"), spec);
+    }
+
     /// The plain input channels the input effects vary ([`plain_inputs`]); when there is none,
     /// `effect` is noted as not applicable.
     fn plain_inputs_for(&mut self, effect: Effect) -> Vec<(usize, Factor)> {
@@ -256,20 +267,9 @@ impl Catalogue<'_, '_> {
             // (refit::fit_nested), judged against that refined structure: when the inputs'
             // mean is not zero, an offset the model lacks biases its PBSID estimate, and the
             // PBSID refit with the constant channel is not the offset alone
-            let mut nested = sp.clone();
-            nested.nested_in = Some(Box::new(refined_null(spec)));
-            self.push(
-                Effect::OutputOffset,
-                "a constant input channel [] (an offset through B^(i) and D)".into(),
-                sp,
-            );
-            self.push(
-                Effect::OutputOffset,
-                "a constant input channel [] (an offset through B^(i) and D), refined from \
-                 the model's own structure refined (output error)"
-                    .into(),
-                nested,
-            );
+            let detail = "a constant input channel [] (an offset through B^(i) and D)";
+            self.push(Effect::OutputOffset, detail.into(), sp.clone());
+            self.push_nested(Effect::OutputOffset, detail, sp);
         }
     }
 
@@ -321,10 +321,9 @@ impl Catalogue<'_, '_> {
             // than a p1^2 basis function on 5 of 12 (docs/bench-diagnose.md, helper h15so)
             let mut sp = spec.clone();
             sp.scheduled_output = true;
-            sp.nested_in = Some(Box::new(refined_null(spec)));
-            self.push(
+            self.push_nested(
                 Effect::ScheduledOutput,
-                "an output equation with C^(i), D^(i), refined from the model's own structure refined (output error)".into(),
+                "an output equation with C^(i), D^(i)",
                 sp,
             );
         }
@@ -364,13 +363,9 @@ impl Catalogue<'_, '_> {
                     // structures are compared fitted the same way
                     let mut sp = spec.clone();
                     sp.signals.scheduling.push(sq.clone());
-                    sp.nested_in = Some(Box::new(refined_null(spec)));
-                    self.push(
+                    self.push_nested(
                         Effect::SchedulingNonlinearity,
-                        format!(
-                            "scheduling basis function {}, refined from the model's own structure refined (output error)",
-                            describe(&sq)
-                        ),
+                        &format!("scheduling basis function {}", describe(&sq)),
                         sp,
                     );
                     if !has(&cu) {
@@ -479,14 +474,10 @@ impl Catalogue<'_, '_> {
             if !added.is_empty() {
                 let mut sp = spec.clone();
                 sp.signals.inputs.extend(added.iter().map(|p| (*p).clone()));
-                sp.nested_in = Some(Box::new(refined_null(spec)));
                 let names: Vec<String> = added.iter().map(|p| describe(p)).collect();
-                self.push(
+                self.push_nested(
                     Effect::InputNonlinearity,
-                    format!(
-                        "input channels {}, refined from the model's own structure refined (output error)",
-                        names.join(" and ")
-                    ),
+                    &format!("input channels {}", names.join(" and ")),
                     sp,
                 );
             }
@@ -897,21 +888,9 @@ impl Catalogue<'_, '_> {
             // (refit::fit_nested), judged against that refined structure: the subspace refit
             // above must beat that structure too (effects::needs_refined_null), and a column
             // whose slow response a short past window biases is found here
-            let mut nested = sp.clone();
-            nested.nested_in = Some(Box::new(refined_null(spec)));
-            self.push(
-                Effect::UnusedSignal,
-                format!("logged column {name} as an input channel"),
-                sp,
-            );
-            self.push(
-                Effect::UnusedSignal,
-                format!(
-                    "logged column {name} as an input channel, refined from the model's own \
-                     structure refined (output error)"
-                ),
-                nested,
-            );
+            let detail = format!("logged column {name} as an input channel");
+            self.push(Effect::UnusedSignal, detail.clone(), sp.clone());
+            self.push_nested(Effect::UnusedSignal, &detail, sp);
             let mut sp = spec.clone();
             sp.signals.scheduling.push(vec![Factor::col(&name)]);
             self.push(
