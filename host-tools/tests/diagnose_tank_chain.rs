@@ -10,7 +10,9 @@
 //! without replicating, and a quasi-LPV scheduling on |y1| was named `output-nonlinearity`
 //! in its place; `w` as an input channel, fitted by PBSID at the user's past window 7,
 //! explained 36 % of an error it causes entirely (free-run VAF 0 %), and `coloured-noise` was
-//! named. Run in release mode.
+//! named. The flow squared (scheduling-nonlinearity), a flow-dependent sensor gain
+//! (scheduled-output) and a dead time on the heater (input-delay) are planted on the same
+//! chains in the long tier. Run in release mode.
 
 mod diagnose_support;
 
@@ -42,6 +44,13 @@ enum Planted {
     /// The inlet temperature `w` carried into the first tank by the flow (p1 (w - x1)
     /// instead of -p1 x1), times a gain in [0.5, 1).
     Inlet,
+    /// The transport between tanks goes with p1^2 (a pump's flow squared), not p1.
+    FlowSquared,
+    /// The heater acts after a dead time of 2-5 samples.
+    DeadTime,
+    /// The outlet sensor's gain moves with the flow: y = (1 + c (p1 - 0.65)) x, c in
+    /// [0.8, 1.5) of either sign.
+    SensorGain,
 }
 
 /// The chain's training and validation records (3000 and 1500 samples, one clock) with
@@ -84,16 +93,36 @@ fn tank_chain(seed: u64, planted: Planted) -> (Dataset, Dataset, String, usize) 
         0.0
     };
     let gw = if planted == Planted::Inlet { gain } else { 0.0 };
+    // the later effects draw from a stream of their own: the first three plants unchanged
+    let mut more = StdRng::seed_from_u64(seed.wrapping_add(0x7a4b));
+    let delay = if planted == Planted::DeadTime {
+        more.gen_range(2..=5usize)
+    } else {
+        0
+    };
+    let slope: f64 = more.gen_range(0.8..1.5) * if more.gen_bool(0.5) { 1.0 } else { -1.0 };
+    let slope = if planted == Planted::SensorGain {
+        slope
+    } else {
+        0.0
+    };
+    let flow = |pk: f64| {
+        if planted == Planted::FlowSquared {
+            pk * pk / 0.65
+        } else {
+            pk
+        }
+    };
     let mut x = vec![0.0f64; tanks];
     let mut y = vec![0.0; n];
     for k in 0..n {
-        y[k] = x[tanks - 1] + off;
+        y[k] = (1.0 + slope * (p[k] - 0.65)) * x[tanks - 1] + off;
         let mut next = x.clone();
         for i in 0..tanks {
             let upstream = if i == 0 { gw * w[k] } else { x[i - 1] };
-            next[i] = x[i] + af * p[k] * (upstream - x[i]) - al * x[i];
+            next[i] = x[i] + af * flow(p[k]) * (upstream - x[i]) - al * x[i];
         }
-        next[0] += af * g * u[k];
+        next[0] += af * g * u[k.saturating_sub(delay)];
         x = next;
     }
     let mean = y.iter().sum::<f64>() / n as f64;
@@ -105,17 +134,17 @@ fn tank_chain(seed: u64, planted: Planted) -> (Dataset, Dataset, String, usize) 
     let t: Vec<f64> = (0..n).map(|k| k as f64).collect();
     let (train, val) = diagnose_support::train_val([&t, &u, &y, &p, &w], 3000);
     let words = format!(
-        "{tanks} tank(s), {} heater, transport {af:.2} p1, loss {al:.3}, offset {off:+.2}, inlet gain {gw:.2}, noise {:.1} %",
+        "{tanks} tank(s), {} heater, transport {af:.2} p1, loss {al:.3}, offset {off:+.2}, inlet gain {gw:.2}, dead time {delay}, sensor slope {slope:+.2}, noise {:.1} %",
         if binary { "two-level" } else { "staircase" },
         100.0 * noise
     );
     (train, val, words, tanks)
 }
 
-/// The plant of `seed` with `planted`: `effect` is the one effect applied and lowers the
-/// held-out free-run error at least `min_ratio` times (nothing is applied on the clean
-/// plant). Returns the error ratio.
-fn named(seed: u64, planted: Planted, effect: &str, min_ratio: f64) -> f64 {
+/// The plant of `seed` with `planted`, diagnosed with `--fix` (one step) from the model
+/// `lpvid pbsid` fits at past window 7 and the plant's order: the effects applied and the
+/// held-out free-run error ratio of the first (1 when nothing was applied), printed.
+fn diagnosed(seed: u64, planted: Planted, effect: &str) -> (Vec<&'static str>, f64) {
     let (train, val, words, tanks) = tank_chain(seed, planted);
     // LPVID_TANK_DUMP=DIR writes the records, to trace a case through the command line
     if let Ok(dir) = std::env::var("LPVID_TANK_DUMP") {
@@ -140,6 +169,14 @@ fn named(seed: u64, planted: Planted, effect: &str, min_ratio: f64) -> f64 {
             f.effect, f.detail, f.explained, f.blocked_by
         );
     }
+    (applied, ratio)
+}
+
+/// The plant of `seed` with `planted`: `effect` is the one effect applied and lowers the
+/// held-out free-run error at least `min_ratio` times (nothing is applied on the clean
+/// plant). Returns the error ratio.
+fn named(seed: u64, planted: Planted, effect: &str, min_ratio: f64) -> f64 {
+    let (applied, ratio) = diagnosed(seed, planted, effect);
     if planted == Planted::Clean {
         assert!(applied.is_empty(), "seed {seed} clean: {applied:?}");
     } else {
@@ -147,6 +184,17 @@ fn named(seed: u64, planted: Planted, effect: &str, min_ratio: f64) -> f64 {
         assert!(ratio >= min_ratio, "seed {seed}: ratio {ratio}");
     }
     ratio
+}
+
+/// How many of the plants of `seeds` with `planted` get `effect` applied alone, lowering
+/// the held-out error at least 3 times.
+fn recall(seeds: std::ops::RangeInclusive<u64>, planted: Planted, effect: &str) -> usize {
+    seeds
+        .filter(|&seed| {
+            let (applied, ratio) = diagnosed(seed, planted, effect);
+            applied == [effect] && ratio >= 3.0
+        })
+        .count()
 }
 
 /// LPVID_TANK_SEEDS=FIRST,COUNT: the chain's plants of those seeds, each planted effect and
@@ -165,6 +213,11 @@ fn the_chain_on_given_seeds() {
         let _ = std::panic::catch_unwind(|| match planted.as_str() {
             "output-offset" => named(seed, Planted::Offset, "output-offset", 5.0),
             "unused-signal" => named(seed, Planted::Inlet, "unused-signal", 5.0),
+            "scheduling-nonlinearity" => {
+                named(seed, Planted::FlowSquared, "scheduling-nonlinearity", 3.0)
+            }
+            "input-delay" => named(seed, Planted::DeadTime, "input-delay", 3.0),
+            "scheduled-output" => named(seed, Planted::SensorGain, "scheduled-output", 3.0),
             _ => named(seed, Planted::Clean, "", 1.0),
         });
     }
@@ -189,4 +242,22 @@ fn the_chain_on_more_seeds() {
         named(seed, Planted::Inlet, "unused-signal", 5.0);
         named(seed, Planted::Clean, "", 1.0);
     }
+}
+
+/// The scheduling effects and a dead time on seeds 1-6 of the chain: at least 5 of 6 plants
+/// each get the planted effect applied alone, lowering the held-out error 3 times or more.
+/// Measured (thirty-second session): the flow squared 6 of 6 (ratios 7.9-2836); the flow-
+/// dependent sensor gain 5 of 6 (seed 6 named scheduling-nonlinearity, ratio 7.9); the dead
+/// time 5 of 6 (seed 1, three tanks and a dead time of 4, has a user's model of free-run VAF
+/// 0 % at past window 7 and nothing is applied).
+#[test]
+#[ignore = "long tier: make test-long"]
+fn the_chain_scheduling_effects_and_dead_time() {
+    let flow = recall(1..=6, Planted::FlowSquared, "scheduling-nonlinearity");
+    let sensor = recall(1..=6, Planted::SensorGain, "scheduled-output");
+    let dead = recall(1..=6, Planted::DeadTime, "input-delay");
+    assert!(
+        flow >= 5 && sensor >= 5 && dead >= 5,
+        "of 6: flow squared {flow}, sensor gain {sensor}, dead time {dead}"
+    );
 }

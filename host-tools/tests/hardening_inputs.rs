@@ -175,6 +175,49 @@ fn a_degenerate_fit_warns_and_says_what_to_try() {
     assert!(!err.contains("warning"), "{err}");
 }
 
+/// A plant that answers its input only after a dead time longer than the past window: the
+/// fit is degenerate, the warning says to try a larger --past, and that one fits.
+#[test]
+fn a_dead_time_beyond_the_past_window_asks_for_a_larger_past() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut text = String::from("u1,y1,p1\n");
+    let (mut y, mut state) = (0.0, 7u64);
+    let mut u = vec![0.0f64; 600];
+    for k in 0..600 {
+        state = state
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
+        u[k] = if (state >> 63) == 1 { 1.0 } else { -1.0 };
+        let p = 0.5 + 0.4 * (0.05 * k as f64).sin();
+        text.push_str(&format!("{},{y},{p}\n", u[k]));
+        y = (0.5 + 0.3 * p) * y + if k >= 8 { u[k - 8] } else { 0.0 };
+    }
+    let t = write(dir.path(), "dead.csv", &text);
+    let out = dir.path().join("m.json");
+    let fit = |past: &str| {
+        let (code, _, err) = binary(&[
+            "pbsid",
+            "--train",
+            s(&t),
+            "--past",
+            past,
+            "--order",
+            "1",
+            "--out",
+            s(&out),
+        ]);
+        assert_eq!(code, 0, "{err}");
+        err
+    };
+    let err = fit("3");
+    assert!(
+        err.contains("warning: degenerate fit") && err.contains("a larger --past (now 3, e.g. 6)"),
+        "{err}"
+    );
+    let err = fit("12");
+    assert!(!err.contains("degenerate"), "{err}");
+}
+
 #[test]
 fn an_order_capped_by_max_order_warns() {
     let dir = tempfile::tempdir().unwrap();

@@ -32,7 +32,8 @@ pub const LATENT_ROUNDS: usize = 8;
 /// The words a nested variant's detail ends with ([`Catalogue::push_nested`]).
 const NESTED: &str = ", refined from the model's own structure refined (output error)";
 
-fn plain(prod: &[Factor]) -> Option<&Factor> {
+/// The factor of a plain channel (one column, power 1, no function), if `prod` is one.
+pub(super) fn plain(prod: &[Factor]) -> Option<&Factor> {
     match prod {
         [f] if f.pow == 1.0 && f.func.is_none() => Some(f),
         _ => None,
@@ -503,6 +504,27 @@ impl Catalogue<'_, '_> {
                     sp,
                 );
             }
+            // the dead time of the ARX models, refined from the model's own structure
+            // refined: a PBSID refit of a slow plant with its input replaced carries the
+            // subspace bias of that plant, and its refit on a training half can run away (a
+            // chain of two mixed tanks with a dead time of 3, docs/bench-diagnose.md, "Dead
+            // time on a chain of tanks"). The channel is replaced, not added beside the
+            // model's own: added, u1(k-1) beside u1 explained 26-37 % of the refined
+            // structure's error on two family plants that lack a p1^2 basis function
+            let order = self.ctx.base.order.max(1);
+            let Some(d) = arx_dead_time(self.ctx.train_signals, *i, order, spec.opts.feedthrough)
+            else {
+                continue;
+            };
+            let mut sp = spec.clone();
+            let g = fac(&f.col, 1, f.delay + d, None);
+            sp.signals.inputs[*i] = vec![g.clone()];
+            let detail = format!(
+                "input channel {} instead of {} (dead time {d} samples, by ARX models)",
+                g.describe(),
+                f.describe()
+            );
+            self.push_nested(Effect::InputDelay, &detail, sp);
         }
     }
 
@@ -928,6 +950,61 @@ fn plain_scheduling(map: &SignalMap) -> Vec<Factor> {
 }
 
 /// The plain input channels of a signal map (index, factor), time columns excluded.
+/// The dead time of input channel `input` by ARX models (the classical delay estimate, as
+/// MATLAB's `delayest`): for each candidate dead time d in 0..=[`MAX_DELAY`] the least squares
+/// of every output on a constant, `order` lags of every output and the taps of every input
+/// channel an order-`order` model with that channel reads (lags 1..=order, or 0..=order with
+/// feedthrough), those of `input` shifted by d, all on the same rows; the d of the least
+/// residual sum of squares. None when that is 0, or the record is too short for the
+/// regression. A plant whose numerator has fewer taps than its order (a chain of tanks:
+/// one) fits several shifts alike; those are the same model to the state-space structure.
+pub fn arx_dead_time(
+    sig: &Signals,
+    input: usize,
+    order: usize,
+    feedthrough: bool,
+) -> Option<usize> {
+    let (n, l, r) = (sig.len(), sig.y.ncols(), sig.u.ncols());
+    let taps = order.clamp(1, 6);
+    let first = usize::from(!feedthrough);
+    let start = MAX_DELAY + taps;
+    let utaps = taps + 1 - first;
+    let nreg = 1 + l * taps + r * utaps;
+    if input >= r || n < start + 8 * nreg {
+        return None;
+    }
+    let mut best: Option<(f64, usize)> = None;
+    for d in 0..=MAX_DELAY {
+        let (_, rss) = super::stats::lstsq(n - start, nreg, l, |row, buf| {
+            let k = start + row;
+            buf[0] = 1.0;
+            let mut c = 1;
+            for j in 0..l {
+                for lag in 1..=taps {
+                    buf[c] = sig.y[(k - lag, j)];
+                    c += 1;
+                }
+            }
+            for q in 0..r {
+                let shift = first + if q == input { d } else { 0 };
+                for lag in 0..utaps {
+                    buf[c] = sig.u[(k - shift - lag, q)];
+                    c += 1;
+                }
+            }
+            for j in 0..l {
+                buf[c + j] = sig.y[(k, j)];
+            }
+        })
+        .ok()?;
+        let total: f64 = rss.iter().sum();
+        if total.is_finite() && best.is_none_or(|(b, _)| total < b) {
+            best = Some((total, d));
+        }
+    }
+    best.map(|(_, d)| d).filter(|&d| d > 0)
+}
+
 fn plain_inputs(map: &SignalMap) -> Vec<(usize, Factor)> {
     map.inputs
         .iter()
@@ -1243,6 +1320,51 @@ pub fn regressors(spec: &Spec) -> usize {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The ARX dead time is the shift of the model's own input channel: a second-order plant
+    /// (numerator of two taps, three with feedthrough) with output noise and a binary input, each dead time 0..=5, as a model without
+    /// feedthrough sees it (the state update reads u(k - d)) and as one with feedthrough
+    /// (the output reads u(k - d) directly).
+    #[test]
+    fn arx_dead_time_finds_the_shift_of_the_input_channel() {
+        let n = 2000;
+        let mut state = 12345u64;
+        let mut uniform = move || {
+            state = state
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            ((state >> 11) as f64 / (1u64 << 53) as f64) - 0.5
+        };
+        let u: Vec<f64> = (0..n)
+            .map(|k| if (k / 7 + k / 3) % 2 == 0 { 1.0 } else { 0.0 })
+            .collect();
+        let u: Vec<f64> = u.iter().map(|v| v + 0.3 * uniform()).collect();
+        for feedthrough in [false, true] {
+            for dead in 0..=5usize {
+                let mut x = [0.0f64; 2];
+                let mut y = vec![0.0; n];
+                for k in 0..n {
+                    let ud = if k >= dead { u[k - dead] } else { 0.0 };
+                    y[k] = x[0]
+                        + 0.8 * x[1]
+                        + if feedthrough { 0.5 * ud } else { 0.0 }
+                        + 0.02 * uniform();
+                    x = [1.2 * x[0] - 0.5 * x[1] + ud, x[0]];
+                }
+                let sig = Signals {
+                    u: DMatrix::from_column_slice(n, 1, &u),
+                    y: DMatrix::from_column_slice(n, 1, &y),
+                    p: DMatrix::zeros(n, 0),
+                };
+                let got = arx_dead_time(&sig, 0, 2, feedthrough);
+                assert_eq!(
+                    got,
+                    (dead > 0).then_some(dead),
+                    "feedthrough {feedthrough}, dead time {dead}"
+                );
+            }
+        }
+    }
 
     /// The sinusoids a variant adds are removed from B^(i) and D, and only those: the user's
     /// own sinusoid channel (the same frequency) and the plain input keep their columns.

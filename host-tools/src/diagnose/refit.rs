@@ -649,6 +649,10 @@ impl Refinement {
 /// is kept before one that is not (then its error may be above an unstable null's): from the padded
 /// start alone the refinement stopped in a local minimum on several family plants (the p1^2
 /// of seed 9003 at 20.7 % where its PBSID estimate explained 87 %; docs, helper h17sc).
+/// A plain input channel replaced by the same column delayed (input-delay) is refined the
+/// same way, from the null's model read with the delayed channel and from its own PBSID
+/// estimate: the same coefficients as the null, so no more flexible than it, and not nested
+/// (it may fit the training data worse than the null).
 pub fn fit_nested(
     spec: &Spec,
     null: &Spec,
@@ -669,9 +673,25 @@ pub fn fit_nested(
         ));
     }
     let (inputs, inputs0) = (spec.signals.inputs.len(), null.signals.inputs.len());
-    if inputs < inputs0 || spec.signals.inputs[..inputs0] != null.signals.inputs[..] {
+    // a channel replaced (the same channels, one delayed: input-delay) keeps the null's
+    // shapes; its start is the null's model read with the replaced channel, which may fit
+    // the training data worse than the null: the one form not nested
+    let replaced = inputs == inputs0
+        && spec.signals.inputs != null.signals.inputs
+        && spec
+            .signals
+            .inputs
+            .iter()
+            .zip(&null.signals.inputs)
+            .all(|(a, b)| {
+                a == b
+                    || matches!((super::catalogue::plain(a), super::catalogue::plain(b)),
+                    (Some(f), Some(g)) if f.col == g.col)
+            });
+    if inputs < inputs0 || (spec.signals.inputs[..inputs0] != null.signals.inputs[..] && !replaced)
+    {
         return Err(RefitError::Unsupported(
-            "a nested refinement adds input channels after the null's".into(),
+            "a nested refinement adds input channels after the null's or delays one of them".into(),
         ));
     }
     let mut start = ss.clone();
