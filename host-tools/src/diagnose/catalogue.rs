@@ -485,24 +485,27 @@ impl Catalogue<'_, '_> {
         }
     }
 
-    /// input-delay: each plain input channel delayed 1..=[`MAX_DELAY`] samples.
+    /// input-delay: each plain input channel delayed 1..=[`MAX_DELAY`] samples (PBSID
+    /// refits), and delayed by its ARX dead time, refined.
     fn input_delay(&mut self) {
         let spec = self.ctx.spec;
+        // the model's structure with channel i (factor f) delayed d more samples, and its words
+        let delayed = |i: usize, f: &Factor, d: usize| {
+            let mut sp = spec.clone();
+            let g = fac(&f.col, 1, f.delay + d, None);
+            sp.signals.inputs[i] = vec![g.clone()];
+            let words = format!(
+                "input channel {} instead of {} (dead time {d} samples",
+                g.describe(),
+                f.describe()
+            );
+            (sp, words)
+        };
         let inputs_plain = self.plain_inputs_for(Effect::InputDelay);
         for (i, f) in &inputs_plain {
             for d in 1..=MAX_DELAY {
-                let mut sp = spec.clone();
-                let g = fac(&f.col, 1, f.delay + d, None);
-                sp.signals.inputs[*i] = vec![g.clone()];
-                self.push(
-                    Effect::InputDelay,
-                    format!(
-                        "input channel {} instead of {} (dead time {d} samples)",
-                        g.describe(),
-                        f.describe()
-                    ),
-                    sp,
-                );
+                let (sp, words) = delayed(*i, f, d);
+                self.push(Effect::InputDelay, format!("{words})"), sp);
             }
             // the dead time of the ARX models, refined from the model's own structure
             // refined: a PBSID refit of a slow plant with its input replaced carries the
@@ -512,19 +515,11 @@ impl Catalogue<'_, '_> {
             // model's own: added, u1(k-1) beside u1 explained 26-37 % of the refined
             // structure's error on two family plants that lack a p1^2 basis function
             let order = self.ctx.base.order.max(1);
-            let Some(d) = arx_dead_time(self.ctx.train_signals, *i, order, spec.opts.feedthrough)
-            else {
-                continue;
-            };
-            let mut sp = spec.clone();
-            let g = fac(&f.col, 1, f.delay + d, None);
-            sp.signals.inputs[*i] = vec![g.clone()];
-            let detail = format!(
-                "input channel {} instead of {} (dead time {d} samples, by ARX models)",
-                g.describe(),
-                f.describe()
-            );
-            self.push_nested(Effect::InputDelay, &detail, sp);
+            let feedthrough = spec.opts.feedthrough;
+            if let Some(d) = arx_dead_time(self.ctx.train_signals, *i, order, feedthrough) {
+                let (sp, words) = delayed(*i, f, d);
+                self.push_nested(Effect::InputDelay, &format!("{words}, by ARX models)"), sp);
+            }
         }
     }
 
@@ -949,7 +944,6 @@ fn plain_scheduling(map: &SignalMap) -> Vec<Factor> {
         .collect()
 }
 
-/// The plain input channels of a signal map (index, factor), time columns excluded.
 /// The dead time of input channel `input` by ARX models (the classical delay estimate, as
 /// MATLAB's `delayest`): for each candidate dead time d in 0..=[`MAX_DELAY`] the least squares
 /// of every output on a constant, `order` lags of every output and the taps of every input
@@ -1005,6 +999,7 @@ pub fn arx_dead_time(
     best.map(|(_, d)| d).filter(|&d| d > 0)
 }
 
+/// The plain input channels of a signal map (index, factor), time columns excluded.
 fn plain_inputs(map: &SignalMap) -> Vec<(usize, Factor)> {
     map.inputs
         .iter()
@@ -1322,9 +1317,9 @@ mod tests {
     use super::*;
 
     /// The ARX dead time is the shift of the model's own input channel: a second-order plant
-    /// (numerator of two taps, three with feedthrough) with output noise and a binary input, each dead time 0..=5, as a model without
-    /// feedthrough sees it (the state update reads u(k - d)) and as one with feedthrough
-    /// (the output reads u(k - d) directly).
+    /// (numerator of two taps, three with feedthrough) with output noise and a binary input,
+    /// each dead time 0..=5, as a model without feedthrough sees it (the state update reads
+    /// u(k - d)) and as one with feedthrough (the output reads u(k - d) directly).
     #[test]
     fn arx_dead_time_finds_the_shift_of_the_input_channel() {
         let n = 2000;
