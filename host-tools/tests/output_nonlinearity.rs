@@ -210,6 +210,16 @@ fn diagnosed(plant: Plant, seed: u64) -> (Identified, Outcome, Dataset, String, 
     let (uv, yv) = record(plant, &prm, 1500, pole, noise, seed * 7 + 2);
     let train = csv("train.csv", &u, &y);
     let val = csv("val.csv", &uv, &yv).data;
+    // LPVID_DUMP=DIR writes the records, to trace a plant through the command line
+    if let Ok(dir) = std::env::var("LPVID_DUMP") {
+        let stem = format!("{dir}/{plant:?}{seed}");
+        train
+            .data
+            .write_csv(std::path::Path::new(&format!("{stem}.train.csv")))
+            .unwrap();
+        val.write_csv(std::path::Path::new(&format!("{stem}.val.csv")))
+            .unwrap();
+    }
     let id = identify(&train, None, &PbsidSettings::new(8)).unwrap();
     let o = diagnose(
         &id.model,

@@ -358,6 +358,16 @@ pub fn identify_and_diagnose(
     past: usize,
     order: usize,
 ) -> (ModelFile, Outcome) {
+    identify_with_order_and_diagnose(train, val, past, &order.to_string())
+}
+
+/// [`identify_and_diagnose`] with `--order ORDER` as the user types it (`auto`, or a number).
+pub fn identify_with_order_and_diagnose(
+    train: &Dataset,
+    val: &Dataset,
+    past: usize,
+    order: &str,
+) -> (ModelFile, Outcome) {
     let dir = tempfile::tempdir().unwrap();
     let tp = dir.path().join("train.csv");
     let mp = dir.path().join("model.json");
@@ -370,7 +380,7 @@ pub fn identify_and_diagnose(
         "--past",
         &past.to_string(),
         "--order",
-        &order.to_string(),
+        order,
         "--out",
         mp.to_str().unwrap(),
     ]
