@@ -13,6 +13,7 @@
 mod diagnose_support;
 
 use lpvid_host::data::Dataset;
+use lpvid_host::linalg::spectral_radius;
 use nalgebra::{DMatrix, DVector};
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
@@ -28,11 +29,7 @@ fn frozen_radius(a0: &DMatrix<f64>, a1: &DMatrix<f64>) -> f64 {
     (0..=20)
         .map(|i| {
             let p = -1.0 + 0.1 * i as f64;
-            (a0 + a1 * p)
-                .complex_eigenvalues()
-                .iter()
-                .map(|c| c.norm())
-                .fold(0.0, f64::max)
+            spectral_radius(&(a0 + a1 * p))
         })
         .fold(0.0, f64::max)
 }

@@ -272,9 +272,10 @@ fn prefer_simpler(order: &[usize], scored: &[Scored], tried: usize) -> Option<(u
             let Some((l_j, k_j, m_j, own_j)) = inf else {
                 continue;
             };
-            // simpler: fewer free coefficients, or as many and linear in the data where the
-            // richer one feeds a function of its own output back
-            let simpler = k_j < k_top || (k_j == k_top && *own_top && !own_j);
+            // simpler: fewer free coefficients, or as many (a tie) and linear in the data
+            // where the richer one feeds a function of its own output back
+            let tie = k_j == k_top;
+            let simpler = k_j < k_top || (tie && *own_top && !own_j);
             if visited[j] || m_j != m_top || !simpler {
                 continue;
             }
@@ -291,7 +292,7 @@ fn prefer_simpler(order: &[usize], scored: &[Scored], tried: usize) -> Option<(u
             };
             // at equal counts the richer earns no extra coefficients: one pairwise test at
             // ALPHA decides, the data's preference kept unless it is within chance
-            let needs = if k_j == k_top { ALPHA } else { level };
+            let needs = if tie { ALPHA } else { level };
             if p >= needs && next.is_none_or(|n| j < n) {
                 next = Some(j);
                 if why.is_empty() {
@@ -300,7 +301,7 @@ fn prefer_simpler(order: &[usize], scored: &[Scored], tried: usize) -> Option<(u
                         scored[order[top]].cand.effect.name(),
                         k_j,
                         k_top,
-                        if k_j == k_top {
+                        if tie {
                             ", the other a function of the model's own output fed back"
                         } else {
                             ""
