@@ -259,3 +259,54 @@ fn nothing_applied_says_why_per_candidate_as_the_json() {
     }
     assert!(checked >= 2, "only {checked} clean runs applied nothing");
 }
+
+/// A model whose free run runs away on the validation data (its state matrix replaced by
+/// 1.1 I) gets a note saying so, in the summary and the JSON; the same plant's own model
+/// gets none. The candidates are still judged against the refit of the model's structure.
+#[test]
+fn a_model_that_runs_away_is_named_in_a_note() {
+    let (plant, args) = planted("clean");
+    let (train, val) = generate(&plant, 100);
+    let dir = tempfile::tempdir().unwrap();
+    let p = |n: &str| dir.path().join(n).display().to_string();
+    train
+        .write_csv(dir.path().join("train.csv").as_path())
+        .unwrap();
+    val.write_csv(dir.path().join("val.csv").as_path()).unwrap();
+    let (tp, vp, mp, bp, rp) = (
+        p("train.csv"),
+        p("val.csv"),
+        p("m.json"),
+        p("bad.json"),
+        p("r.json"),
+    );
+    let mut a = vec!["pbsid", "--train", &tp];
+    a.extend(args.iter());
+    a.extend(["--out", &mp]);
+    lpvid(&a).unwrap();
+    let mut bad: Value = serde_json::from_str(&std::fs::read_to_string(&mp).unwrap()).unwrap();
+    let a_mats = bad["A"].as_array_mut().unwrap();
+    for (i, m) in a_mats.iter_mut().enumerate() {
+        for (r, row) in m.as_array_mut().unwrap().iter_mut().enumerate() {
+            for (c, v) in row.as_array_mut().unwrap().iter_mut().enumerate() {
+                *v = Value::from(if i == 0 && r == c { 1.1 } else { 0.0 });
+            }
+        }
+    }
+    std::fs::write(&bp, serde_json::to_string(&bad).unwrap()).unwrap();
+    let says = "the model's free run runs away on the validation data";
+    for (model, runs_away) in [(&bp, true), (&mp, false)] {
+        let note = lpvid(&[
+            "diagnose", "--model", model, "--train", &tp, "--val", &vp, "--json", &rp,
+        ])
+        .unwrap();
+        let json: Value = serde_json::from_str(&std::fs::read_to_string(&rp).unwrap()).unwrap();
+        let in_json = json["notes"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .any(|n| n.as_str().unwrap().starts_with(says));
+        assert_eq!(in_json, runs_away, "{note}");
+        assert_eq!(note.contains(&format!("Note: {says}")), runs_away, "{note}");
+    }
+}

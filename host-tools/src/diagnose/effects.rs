@@ -259,19 +259,28 @@ impl Eval {
     /// where the record dwells, say), which says the estimate failed, not how good its
     /// structure is ([`super::replicate::Halves`]).
     pub fn runs_away(&self, mode: Mode) -> bool {
+        self.runaway_at(mode).is_some()
+    }
+
+    /// The first scored row at which [`Eval::runs_away`] holds, if any.
+    pub fn runaway_at(&self, mode: Mode) -> Option<usize> {
         let yhat = match mode {
             Mode::FreeRun => &self.yhat_free,
             Mode::Predictor => &self.yhat_pred,
         };
         let rows = self.skip..self.y.nrows();
-        (0..self.y.ncols()).any(|j| {
-            let (lo, hi) = rows
-                .clone()
-                .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), k| {
-                    (a.min(self.y[(k, j)]), b.max(self.y[(k, j)]))
-                });
-            let (mid, half) = (0.5 * (lo + hi), 0.5 * (hi - lo));
-            rows.clone().any(|k| {
+        let bounds: Vec<(f64, f64)> = (0..self.y.ncols())
+            .map(|j| {
+                let (lo, hi) = rows
+                    .clone()
+                    .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), k| {
+                        (a.min(self.y[(k, j)]), b.max(self.y[(k, j)]))
+                    });
+                (0.5 * (lo + hi), 0.5 * (hi - lo))
+            })
+            .collect();
+        rows.clone().find(|&k| {
+            bounds.iter().enumerate().any(|(j, &(mid, half))| {
                 let v = yhat[(k, j)];
                 !v.is_finite() || (half > 0.0 && (v - mid).abs() > RUNAWAY * half)
             })
@@ -407,8 +416,19 @@ fn score_inner(
             return Scored::failed(cand, Some(fitted), Some(eval), why);
         }
     };
-    if eval.loss(mode).iter().any(|v| !v.is_finite()) {
-        let why = "the refit model diverges on the validation data".to_string();
+    // a run that leaves the measured range by an order of magnitude has failed as surely as
+    // one that overflows: its error measures the estimate, not the structure, and against a
+    // null that ran away too it would still "explain" nearly all of the error (a Lur'e
+    // channel whose frequency the refinement drove to 1e-88 on a plant whose subspace model
+    // diverged: after VAF 0, "explains 100 %")
+    if eval.loss(mode).iter().any(|v| !v.is_finite()) || eval.runs_away(mode) {
+        let why = format!(
+            "the refit model's {} on the validation data runs away (leaves the measured outputs' range by more than {RUNAWAY} times its half-width, or overflows)",
+            match mode {
+                Mode::FreeRun => "free run",
+                Mode::Predictor => "one-step prediction",
+            }
+        );
         return Scored::failed(cand, Some(fitted), Some(eval), why);
     }
     // the symmetric memory rule corrects refits of the model's own structure; a variant

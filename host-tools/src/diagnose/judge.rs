@@ -17,7 +17,8 @@
 //! of its variants passes every rule: a best variant that does not replicate, or replicates
 //! and fails a later rule, gives way to the effect's next variants
 //! ([`replicate::alternatives`]). [`Judgement`] keeps what each rule found: the evidence of a
-//! finding, and the one rule named when it is blocked.
+//! finding, and the one rule named when it is blocked. A variant whose held-out run
+//! runs away ([`effects::Eval::runs_away`]) is not judged at all: [`effects::score`] fails it.
 
 use std::cell::OnceCell;
 

@@ -386,6 +386,7 @@ pub fn diagnose_with_progress(
     let before_one_step = score_model(model, Mode::Predictor)?;
     notes.extend(unstable_predictor(model, val, &before_one_step));
     let before_eval = Eval::new(model, val)?;
+    notes.extend(runaway_free_run(model, train, val, &before_eval));
     let (free0, one0) = residual_reports(&before_eval, val);
     let mut trail = Trail {
         model: model.clone(),
@@ -616,6 +617,48 @@ fn unstable_predictor(model: &ModelFile, val: &Dataset, one_step: &Score) -> Opt
                 .join(" / ")
         )
     })
+}
+
+/// A note when the given model's free run runs away on the held-out data
+/// ([`Eval::runaway_at`]): every fraction explained is then of a failed run's error, so the
+/// user should first get a model that can be simulated; where the held-out scheduling
+/// signals leave the training data's range, the model extrapolates there, which is said too.
+fn runaway_free_run(
+    model: &ModelFile,
+    train: &Dataset,
+    val: &Dataset,
+    eval: &Eval,
+) -> Option<String> {
+    let k = eval.runaway_at(Mode::FreeRun)?;
+    let names = model.signals.scheduling_names();
+    let sched_box = |d: &Dataset| {
+        let sig = model.signals.evaluate(d).ok()?;
+        Some(crate::observer::SchedBox::from_signals(&names, &sig))
+    };
+    let beyond = match (sched_box(train), sched_box(val)) {
+        (Some(t), Some(v)) => (0..v.dim().min(t.dim()))
+            .filter(|&j| v.lo[j] < t.lo[j] || v.hi[j] > t.hi[j])
+            .map(|j| {
+                format!(
+                    "{} in [{:.3}, {:.3}] against [{:.3}, {:.3}] in training",
+                    v.names[j], v.lo[j], v.hi[j], t.lo[j], t.hi[j]
+                )
+            })
+            .collect::<Vec<_>>(),
+        _ => vec![],
+    };
+    Some(format!(
+        "the model's free run runs away on the validation data: from sample {k} its output leaves the measured range by more than {} times the range's half-width, so each fraction explained below is of a failed run's error and a fix is first of all a model that can be simulated{}; a model that can be simulated may come from `lpvid pbsid --refine`, a smaller `--past` or another `--order`",
+        effects::RUNAWAY,
+        if beyond.is_empty() {
+            String::new()
+        } else {
+            format!(
+                " (the validation data leave the training data's scheduling range, where the model extrapolates: {})",
+                beyond.join("; ")
+            )
+        }
+    ))
 }
 
 /// The residual of the null refit on the TRAINING data that the catalogue designs frequencies

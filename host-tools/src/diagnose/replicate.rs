@@ -471,6 +471,11 @@ mod tests {
         let run = |yhat: &[f64], skip| eval(&y, yhat, skip).runs_away(Mode::FreeRun);
         assert!(!run(&[2.0, 2.0, -7.9, 11.9, 2.0], 0));
         assert!(run(&[2.0, 2.0, -8.1, 2.0, 2.0], 0));
+        // the first scored row beyond the bound
+        let at = |yhat: &[f64], skip| eval(&y, yhat, skip).runaway_at(Mode::FreeRun);
+        assert_eq!(at(&[2.0, 2.0, -8.1, 13.0, 2.0], 0), Some(2));
+        assert_eq!(at(&[1e6, 2.0, 2.0, 13.0, 2.0], 1), Some(3));
+        assert_eq!(at(&[2.0; 5], 0), None);
         assert!(run(&[2.0, 2.0, 12.1, 2.0, 2.0], 0));
         assert!(run(&[2.0, 2.0, f64::NAN, 2.0, 2.0], 0));
         assert!(!run(&[1e6, 2.0, 2.0, 2.0, 2.0], 1));
