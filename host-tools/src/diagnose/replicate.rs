@@ -116,6 +116,37 @@ pub fn alternatives(
 /// Level of each half's test in the replication check.
 pub const REPLICATION_ALPHA: f64 = 0.05;
 
+/// Blocks each interleaved half is made of ([`interleaved_halves`]).
+pub const INTERLEAVED_BLOCKS: usize = 4;
+
+/// The two interleaved halves of a data set: the record cut into 2 x [`INTERLEAVED_BLOCKS`]
+/// contiguous blocks, the even blocks concatenated into one half and the odd ones into the
+/// other ([`concat`]), so that each half spans the whole record. On a record whose
+/// operating point drifts (a slow sweep of the scheduling signal, an output level that
+/// rises through the record) the first and second halves see different ranges and each
+/// half's refit extrapolates over the other's; the interleaved halves see nearly the same
+/// range. The junctions put 2 x [`INTERLEAVED_BLOCKS`] - 2 jumps into each half's record (a
+/// past window of `past` samples straddles each). None when a block would be shorter than
+/// four past windows or than 50 samples.
+pub fn interleaved_halves(ds: &Dataset, past: usize) -> Option<[Dataset; 2]> {
+    let n = ds.len();
+    let k = 2 * INTERLEAVED_BLOCKS;
+    if n / k < (4 * past).max(50) {
+        return None;
+    }
+    let blocks: Vec<Dataset> = (0..k)
+        .map(|j| rows(ds, j * n / k, (j + 1) * n / k))
+        .collect();
+    let half = |parity: usize, tag: &str| {
+        let parts: Vec<&Dataset> = blocks.iter().skip(parity).step_by(2).collect();
+        concat(
+            &parts,
+            format!("{} ({tag} blocks of {k}, interleaved half)", ds.source),
+        )
+    };
+    Some([half(0, "even")?, half(1, "odd")?])
+}
+
 /// The two halves of a data set (contiguous, first and second).
 pub fn halves(ds: &Dataset) -> [Dataset; 2] {
     let n = ds.len();
@@ -142,8 +173,11 @@ pub fn halves(ds: &Dataset) -> [Dataset; 2] {
 /// own, [`Candidate::null`], is refit with that null; only its own run is checked. When a
 /// wider refit fails or diverges, the half keeps its first score.)
 pub struct Halves<'a> {
-    /// The first and second half of the training data.
+    /// The first and second half of the training data (or the even and odd blocks,
+    /// [`interleaved_halves`]).
     pub sets: [Dataset; 2],
+    /// Whether `sets` are the interleaved halves.
+    interleaved: bool,
     /// The null structure refit on each half, evaluated on the held-out record.
     pub nulls: Vec<Eval>,
     /// The model's structure.
@@ -177,13 +211,45 @@ impl<'a> Halves<'a> {
         val: &'a Dataset,
         fit: &'a serde_json::Value,
     ) -> Option<Halves<'a>> {
-        let sets = halves(train);
+        Halves::of(halves(train), false, spec, val, fit)
+    }
+
+    /// [`Halves::new`] on the interleaved halves of `train` ([`interleaved_halves`]).
+    pub fn interleaved(
+        spec: &'a Spec,
+        train: &Dataset,
+        val: &'a Dataset,
+        fit: &'a serde_json::Value,
+    ) -> Option<Halves<'a>> {
+        Halves::of(
+            interleaved_halves(train, spec.opts.past)?,
+            true,
+            spec,
+            val,
+            fit,
+        )
+    }
+
+    /// Whether these are the interleaved halves.
+    pub fn is_interleaved(&self) -> bool {
+        self.interleaved
+    }
+
+    /// The structure refit on each of `sets` and scored on `val`.
+    fn of(
+        sets: [Dataset; 2],
+        interleaved: bool,
+        spec: &'a Spec,
+        val: &'a Dataset,
+        fit: &'a serde_json::Value,
+    ) -> Option<Halves<'a>> {
         let nulls = sets
             .iter()
             .map(|h| fit_eval(spec, h, val, fit))
             .collect::<Option<Vec<_>>>()?;
         Some(Halves {
             sets,
+            interleaved,
             nulls,
             spec,
             val,
@@ -224,7 +290,12 @@ impl<'a> Halves<'a> {
                     };
                     r.widened.push(format!(
                         "on the {} half the {} refit ran away from the held-out data, so both were refit there one past sample longer: {pasts}",
-                        if i == 0 { "first" } else { "second" },
+                        match (self.is_interleaved(), i) {
+                            (false, 0) => "first",
+                            (false, _) => "second",
+                            (true, 0) => "even-block",
+                            (true, _) => "odd-block",
+                        },
                         if ran_away(&s) { "variant's" } else { "null structure's" },
                     ));
                     s = w;
@@ -447,6 +518,39 @@ mod tests {
     use super::*;
     use crate::simulate::Mode;
     use nalgebra::DMatrix;
+
+    /// The interleaved halves alternate blocks of the record, so each spans it: on a ramp
+    /// each half's range is nearly the whole record's, where the contiguous halves split it
+    /// in two; a record shorter than 8 blocks of 4 past windows (or of 50 samples) has none.
+    #[test]
+    fn interleaved_halves_alternate_blocks_and_span_the_record() {
+        let n = 800;
+        let ramp: Vec<f64> = (0..n).map(|k| k as f64).collect();
+        let ds = Dataset {
+            source: "r.csv".into(),
+            names: vec!["p1".into()],
+            cols: vec![ramp],
+        };
+        let [even, odd] = interleaved_halves(&ds, 5).unwrap();
+        assert_eq!((even.len(), odd.len()), (400, 400));
+        let col = |d: &Dataset| d.column("p1").unwrap().to_vec();
+        // blocks of 100: even holds 0..100, 200..300, ...; odd 100..200, 300..400, ...
+        assert_eq!(col(&even)[..3], [0.0, 1.0, 2.0]);
+        assert_eq!(col(&even)[100], 200.0);
+        assert_eq!(col(&odd)[0], 100.0);
+        assert_eq!(*col(&odd).last().unwrap(), 799.0);
+        let span = |d: &Dataset| {
+            let c = col(d);
+            c.iter().copied().fold(f64::NEG_INFINITY, f64::max)
+                - c.iter().copied().fold(f64::INFINITY, f64::min)
+        };
+        let [first, second] = halves(&ds);
+        assert!(span(&even) >= 0.87 * 799.0 && span(&odd) >= 0.87 * 799.0);
+        assert!(span(&first) < 0.5 * 799.0 && span(&second) < 0.5 * 799.0);
+        // 100-sample blocks hold 4 past windows of 25, not of 26
+        assert!(interleaved_halves(&ds, 25).is_some());
+        assert!(interleaved_halves(&ds, 26).is_none());
+    }
 
     /// An evaluation of measured outputs `y` with free-run outputs `yhat` (one output).
     fn eval(y: &[f64], yhat: &[f64], skip: usize) -> Eval {
