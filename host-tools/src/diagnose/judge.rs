@@ -207,79 +207,24 @@ fn replicate_on_halves<'b>(
         notes.push("the null structure cannot be refit on half of the training data: findings are not replicated on independent halves".into());
         return None;
     };
-    // the interleaved halves, refit when a variant first fails on the first and second
-    let interleaved: OnceCell<Option<Halves<'b>>> = OnceCell::new();
     for j in js.iter_mut().filter(|j| j.full_data) {
         let mut r = halves.replicate(&b.scored[j.index].cand);
         if !replicate::replicated(&r.versus) {
             let alts =
                 replicate::alternatives(b.scored, j.index, b.tried, b.base_eval, b.larger_eval);
-            let mut swapped = false;
-            for &i in &alts {
+            for i in alts {
                 let r2 = halves.replicate(&b.scored[i].cand);
                 if replicate::replicated(&r2.versus) {
-                    j.swapped_from = Some((j.index, r.versus.clone()));
+                    j.swapped_from = Some((j.index, r.versus));
                     j.index = i;
                     r = r2;
-                    swapped = true;
                     break;
-                }
-            }
-            if !swapped {
-                if let Some((i, r2)) = replicate_interleaved(b, &interleaved, j.index, &alts, &r) {
-                    if i != j.index {
-                        j.swapped_from = Some((j.index, r.versus.clone()));
-                        j.index = i;
-                    }
-                    r = r2;
                 }
             }
         }
         j.take_replication(r);
     }
     Some(halves)
-}
-
-/// The second split of the replication: when neither the judged variant (`best`) nor its
-/// alternatives (`alts`) replicate on the first and second halves of the training data, each
-/// is replicated, in the same order, on the interleaved halves ([`Halves::interleaved`],
-/// [`replicate::interleaved_halves`]); the first that replicates there is returned with its
-/// replication, whose words say the first split's result (`first`). On a record whose
-/// operating point drifts through the training data (a slow sweep of p1 from -1 to 1) the
-/// first half's refit extrapolates over the second half's range and a scheduled output gain
-/// explained -inf % and 71.6 % on the contiguous halves (docs/bench-diagnose.md, thirty-fourth
-/// session). Each variant gets one more two-half check, so the chance that estimation noise
-/// alone replicates it at most doubles (about 0.5 %), after the full-data test at the
-/// Bonferroni level.
-fn replicate_interleaved<'b>(
-    b: &Bench<'b>,
-    interleaved: &OnceCell<Option<Halves<'b>>>,
-    best: usize,
-    alts: &[usize],
-    first: &Replication,
-) -> Option<(usize, Replication)> {
-    let halves = interleaved
-        .get_or_init(|| Halves::interleaved(b.spec, b.train, b.val, b.fit))
-        .as_ref()?;
-    std::iter::once(best).chain(alts.iter().copied()).find_map(|i| {
-        let mut r = halves.replicate(&b.scored[i].cand);
-        replicate::replicated(&r.versus).then(|| {
-            r.widened.insert(
-                0,
-                format!(
-                    "on the interleaved halves (the training data cut into {} blocks, the even and the odd ones each concatenated), after the first and second halves disagreed ({})",
-                    2 * replicate::INTERLEAVED_BLOCKS,
-                    first
-                        .versus
-                        .iter()
-                        .map(|x| format!("{:.1} %", 100.0 * x.0))
-                        .collect::<Vec<_>>()
-                        .join(" and ")
-                ),
-            );
-            (i, r)
-        })
-    })
 }
 
 impl References {

@@ -116,6 +116,62 @@ pub fn alternatives(
 /// Level of each half's test in the replication check.
 pub const REPLICATION_ALPHA: f64 = 0.05;
 
+/// The least share of a scheduling signal's training range that each contiguous half must
+/// see for the replication to use the first and second halves ([`drift`]).
+pub const MIN_HALF_COVERAGE: f64 = 0.75;
+
+/// Why the first and second halves of `train` would test extrapolation rather than
+/// replication, in words: a half sees less than [`MIN_HALF_COVERAGE`] of the training range
+/// of a data column the model's scheduling functions read (a record whose operating point
+/// sweeps or drifts: p1 rising from -1 to 1 through the training data leaves each half one
+/// half of the range, and a scheduled output gain explained -inf % and 71.6 % on them). None
+/// when every half sees enough of every such column. Decided from the scheduling data alone,
+/// before any variant is replicated, so each variant still gets one two-half check.
+pub fn drift(train: &Dataset, spec: &Spec) -> Option<String> {
+    let mut cols: Vec<&str> = spec
+        .signals
+        .scheduling
+        .iter()
+        .flatten()
+        .map(|f| f.col.as_str())
+        .collect();
+    cols.sort_unstable();
+    cols.dedup();
+    drift_of(train, &cols)
+}
+
+/// [`drift`] over the data columns `cols`.
+fn drift_of(train: &Dataset, cols: &[&str]) -> Option<String> {
+    let n = train.len();
+    let range = |c: &[f64]| {
+        let (lo, hi) = c
+            .iter()
+            .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), &v| {
+                (a.min(v), b.max(v))
+            });
+        (hi - lo, lo, hi)
+    };
+    cols.iter().find_map(|&name| {
+        let c = train.column(name)?;
+        let (whole, lo, hi) = range(c);
+        if !(whole > 0.0 && whole.is_finite()) {
+            return None;
+        }
+        let (first, second) = (range(&c[..n / 2]), range(&c[n / 2..]));
+        (first.0.min(second.0) < MIN_HALF_COVERAGE * whole).then(|| {
+            format!(
+                "on the interleaved halves (the training data cut into {} blocks, the even and the odd ones each concatenated), as the first and second halves see {name} in [{:.3}, {:.3}] and [{:.3}, {:.3}] of [{lo:.3}, {hi:.3}] (each must see {:.0} % of its range)",
+                2 * INTERLEAVED_BLOCKS,
+                first.1,
+                first.2,
+                second.1,
+                second.2,
+                100.0 * MIN_HALF_COVERAGE
+            )
+        })
+    })
+}
+
 /// Blocks each interleaved half is made of ([`interleaved_halves`]).
 pub const INTERLEAVED_BLOCKS: usize = 4;
 
@@ -176,8 +232,8 @@ pub struct Halves<'a> {
     /// The first and second half of the training data (or the even and odd blocks,
     /// [`interleaved_halves`]).
     pub sets: [Dataset; 2],
-    /// Whether `sets` are the interleaved halves.
-    interleaved: bool,
+    /// Why `sets` are the interleaved halves, in words (None: the first and second).
+    interleaved: Option<String>,
     /// The null structure refit on each half, evaluated on the held-out record.
     pub nulls: Vec<Eval>,
     /// The model's structure.
@@ -211,34 +267,22 @@ impl<'a> Halves<'a> {
         val: &'a Dataset,
         fit: &'a serde_json::Value,
     ) -> Option<Halves<'a>> {
-        Halves::of(halves(train), false, spec, val, fit)
-    }
-
-    /// [`Halves::new`] on the interleaved halves of `train` ([`interleaved_halves`]).
-    pub fn interleaved(
-        spec: &'a Spec,
-        train: &Dataset,
-        val: &'a Dataset,
-        fit: &'a serde_json::Value,
-    ) -> Option<Halves<'a>> {
-        Halves::of(
-            interleaved_halves(train, spec.opts.past)?,
-            true,
-            spec,
-            val,
-            fit,
-        )
+        match drift(train, spec).and_then(|w| Some((interleaved_halves(train, spec.opts.past)?, w)))
+        {
+            Some((sets, words)) => Halves::of(sets, Some(words), spec, val, fit),
+            None => Halves::of(halves(train), None, spec, val, fit),
+        }
     }
 
     /// Whether these are the interleaved halves.
     pub fn is_interleaved(&self) -> bool {
-        self.interleaved
+        self.interleaved.is_some()
     }
 
     /// The structure refit on each of `sets` and scored on `val`.
     fn of(
         sets: [Dataset; 2],
-        interleaved: bool,
+        interleaved: Option<String>,
         spec: &'a Spec,
         val: &'a Dataset,
         fit: &'a serde_json::Value,
@@ -266,7 +310,7 @@ impl<'a> Halves<'a> {
         let mut r = Replication {
             versus: Vec::with_capacity(2),
             bases: Vec::with_capacity(2),
-            widened: Vec::new(),
+            widened: self.interleaved.iter().cloned().collect(),
         };
         for (i, (h, null)) in self.sets.iter().zip(&self.nulls).enumerate() {
             let mut s = score(cand.clone(), h, self.val, self.fit, Some(null));
@@ -550,6 +594,29 @@ mod tests {
         // 100-sample blocks hold 4 past windows of 25, not of 26
         assert!(interleaved_halves(&ds, 25).is_some());
         assert!(interleaved_halves(&ds, 26).is_none());
+    }
+
+    /// A column that sweeps its range once leaves each contiguous half half of it: the
+    /// interleaved halves are chosen; one that cycles through it many times does not, nor does
+    /// a constant column or a column the data lack.
+    #[test]
+    fn a_sweep_chooses_the_interleaved_halves() {
+        let n = 1000;
+        let ramp: Vec<f64> = (0..n)
+            .map(|k| -1.0 + 2.0 * k as f64 / (n - 1) as f64)
+            .collect();
+        let cycles: Vec<f64> = (0..n).map(|k| (0.1 * k as f64).sin()).collect();
+        let ds = Dataset {
+            source: "s.csv".into(),
+            names: vec!["ramp".into(), "cycles".into(), "still".into()],
+            cols: vec![ramp, cycles, vec![0.5; n]],
+        };
+        let words = drift_of(&ds, &["cycles", "ramp"]).unwrap();
+        assert!(
+            words.contains("ramp in [-1.000, -0.001] and [0.001, 1.000]"),
+            "{words}"
+        );
+        assert!(drift_of(&ds, &["cycles", "still", "missing"]).is_none());
     }
 
     /// An evaluation of measured outputs `y` with free-run outputs `yhat` (one output).
