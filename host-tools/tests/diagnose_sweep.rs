@@ -1,10 +1,9 @@
 //! The scheduling effects on a record whose operating point sweeps slowly through its range
-//! (issue 14, generality; docs/bench-diagnose.md, "A swept operating point: the replication
-//! on interleaved halves"): p1 rises from -1 to 1 over the training record and
+//! (issue 14, generality; docs/bench-diagnose.md, "A swept operating point: interleaved halves
+//! tried, not kept"): p1 rises from -1 to 1 over the training record and
 //! falls back over the validation record, as in an experiment that sweeps the operating
 //! point. The first half of the training data then sees p1 in [-1, 0] and the second half
-//! [0, 1], and each half's refit extrapolates over the other's range; the replication uses
-//! the interleaved halves instead (`diagnose::replicate::drift`, `interleaved_halves`). The
+//! [0, 1], and each half's refit extrapolates over the other's range in the replication. The
 //! plants are drawn by a generator of their own: order 1-3, random stable poles and a random
 //! similarity, A, B affine in p1, white Gaussian input, white output noise 1-8 % of the
 //! output's spread; `scheduled-output` multiplies the output by 1 + s p1 (|s| 0.5-1),
@@ -174,12 +173,11 @@ fn seeds() -> (u64, u64) {
 
 /// The scheduled output gain is named first on at least half of the swept plants, the p1^2
 /// dependence on at least a third, and a clean swept plant has no finding on at least five
-/// in six. Measured (the docs' section), seeds 1-6: scheduled-output 3 of 6 (the other three
-/// named scheduling-nonlinearity at the same error ratios: on a slow sweep the two structures
-/// give the same input-output behaviour), p1^2 3 of 6, clean 0 findings in 6; with the first
-/// and second halves instead of the interleaved ones 6, 2 and 0. The p1^2 misses: variants the
-/// refined structure matches, on a record where p1^2 matters only near the ends of the
-/// sweep, and order-3 plants whose refits on a half run away.
+/// in six. Measured (the docs' section), seeds 1-6: scheduled-output 6 of 6, p1^2 2 of 6,
+/// clean 0 findings in 6. The p1^2 misses: refits on the first or second half that
+/// extrapolate over the other's range, variants the refined structure matches on a record
+/// where p1^2 matters only near the ends of the sweep, and order-3 plants whose refits on a
+/// half run away.
 #[test]
 #[ignore = "long tier: make test-long"]
 fn the_scheduling_effects_are_named_on_a_swept_operating_point() {

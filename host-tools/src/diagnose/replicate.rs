@@ -116,93 +116,6 @@ pub fn alternatives(
 /// Level of each half's test in the replication check.
 pub const REPLICATION_ALPHA: f64 = 0.05;
 
-/// The least share of a scheduling signal's training range that each contiguous half must
-/// see for the replication to use the first and second halves ([`drift`]).
-pub const MIN_HALF_COVERAGE: f64 = 0.75;
-
-/// Why the first and second halves of `train` would test extrapolation rather than
-/// replication, in words: a half sees less than [`MIN_HALF_COVERAGE`] of the training range
-/// of a data column the model's scheduling functions read (a record whose operating point
-/// sweeps or drifts: p1 rising from -1 to 1 through the training data leaves each half one
-/// half of the range, and a scheduled output gain explained -inf % and 71.6 % on them). None
-/// when every half sees enough of every such column. Decided from the scheduling data alone,
-/// before any variant is replicated, so each variant still gets one two-half check.
-pub fn drift(train: &Dataset, spec: &Spec) -> Option<String> {
-    let mut cols: Vec<&str> = spec
-        .signals
-        .scheduling
-        .iter()
-        .flatten()
-        .map(|f| f.col.as_str())
-        .collect();
-    cols.sort_unstable();
-    cols.dedup();
-    drift_of(train, &cols)
-}
-
-/// [`drift`] over the data columns `cols`.
-fn drift_of(train: &Dataset, cols: &[&str]) -> Option<String> {
-    let n = train.len();
-    let range = |c: &[f64]| {
-        let (lo, hi) = c
-            .iter()
-            .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), &v| {
-                (a.min(v), b.max(v))
-            });
-        (hi - lo, lo, hi)
-    };
-    cols.iter().find_map(|&name| {
-        let c = train.column(name)?;
-        let (whole, lo, hi) = range(c);
-        if !(whole > 0.0 && whole.is_finite()) {
-            return None;
-        }
-        let (first, second) = (range(&c[..n / 2]), range(&c[n / 2..]));
-        (first.0.min(second.0) < MIN_HALF_COVERAGE * whole).then(|| {
-            format!(
-                "on the interleaved halves (the training data cut into {} blocks, the even and the odd ones each concatenated), as the first and second halves see {name} in [{:.3}, {:.3}] and [{:.3}, {:.3}] of [{lo:.3}, {hi:.3}] (each must see {:.0} % of its range)",
-                2 * INTERLEAVED_BLOCKS,
-                first.1,
-                first.2,
-                second.1,
-                second.2,
-                100.0 * MIN_HALF_COVERAGE
-            )
-        })
-    })
-}
-
-/// Blocks each interleaved half is made of ([`interleaved_halves`]).
-pub const INTERLEAVED_BLOCKS: usize = 4;
-
-/// The two interleaved halves of a data set: the record cut into 2 x [`INTERLEAVED_BLOCKS`]
-/// contiguous blocks, the even blocks concatenated into one half and the odd ones into the
-/// other ([`concat`]), so that each half spans the whole record. On a record whose
-/// operating point drifts (a slow sweep of the scheduling signal, an output level that
-/// rises through the record) the first and second halves see different ranges and each
-/// half's refit extrapolates over the other's; the interleaved halves see nearly the same
-/// range. The junctions put 2 x [`INTERLEAVED_BLOCKS`] - 2 jumps into each half's record (a
-/// past window of `past` samples straddles each). None when a block would be shorter than
-/// four past windows or than 50 samples.
-pub fn interleaved_halves(ds: &Dataset, past: usize) -> Option<[Dataset; 2]> {
-    let n = ds.len();
-    let k = 2 * INTERLEAVED_BLOCKS;
-    if n / k < (4 * past).max(50) {
-        return None;
-    }
-    let blocks: Vec<Dataset> = (0..k)
-        .map(|j| rows(ds, j * n / k, (j + 1) * n / k))
-        .collect();
-    let half = |parity: usize, tag: &str| {
-        let parts: Vec<&Dataset> = blocks.iter().skip(parity).step_by(2).collect();
-        concat(
-            &parts,
-            format!("{} ({tag} blocks of {k}, interleaved half)", ds.source),
-        )
-    };
-    Some([half(0, "even")?, half(1, "odd")?])
-}
-
 /// The two halves of a data set (contiguous, first and second).
 pub fn halves(ds: &Dataset) -> [Dataset; 2] {
     let n = ds.len();
@@ -229,11 +142,8 @@ pub fn halves(ds: &Dataset) -> [Dataset; 2] {
 /// own, [`Candidate::null`], is refit with that null; only its own run is checked. When a
 /// wider refit fails or diverges, the half keeps its first score.)
 pub struct Halves<'a> {
-    /// The first and second half of the training data (or the even and odd blocks,
-    /// [`interleaved_halves`]).
+    /// The first and second half of the training data.
     pub sets: [Dataset; 2],
-    /// Why `sets` are the interleaved halves, in words (None: the first and second).
-    interleaved: Option<String>,
     /// The null structure refit on each half, evaluated on the held-out record.
     pub nulls: Vec<Eval>,
     /// The model's structure.
@@ -267,33 +177,13 @@ impl<'a> Halves<'a> {
         val: &'a Dataset,
         fit: &'a serde_json::Value,
     ) -> Option<Halves<'a>> {
-        match drift(train, spec).and_then(|w| Some((interleaved_halves(train, spec.opts.past)?, w)))
-        {
-            Some((sets, words)) => Halves::of(sets, Some(words), spec, val, fit),
-            None => Halves::of(halves(train), None, spec, val, fit),
-        }
-    }
-
-    /// Whether these are the interleaved halves.
-    pub fn is_interleaved(&self) -> bool {
-        self.interleaved.is_some()
-    }
-
-    /// The structure refit on each of `sets` and scored on `val`.
-    fn of(
-        sets: [Dataset; 2],
-        interleaved: Option<String>,
-        spec: &'a Spec,
-        val: &'a Dataset,
-        fit: &'a serde_json::Value,
-    ) -> Option<Halves<'a>> {
+        let sets = halves(train);
         let nulls = sets
             .iter()
             .map(|h| fit_eval(spec, h, val, fit))
             .collect::<Option<Vec<_>>>()?;
         Some(Halves {
             sets,
-            interleaved,
             nulls,
             spec,
             val,
@@ -310,7 +200,7 @@ impl<'a> Halves<'a> {
         let mut r = Replication {
             versus: Vec::with_capacity(2),
             bases: Vec::with_capacity(2),
-            widened: self.interleaved.iter().cloned().collect(),
+            widened: Vec::new(),
         };
         for (i, (h, null)) in self.sets.iter().zip(&self.nulls).enumerate() {
             let mut s = score(cand.clone(), h, self.val, self.fit, Some(null));
@@ -334,12 +224,7 @@ impl<'a> Halves<'a> {
                     };
                     r.widened.push(format!(
                         "on the {} half the {} refit ran away from the held-out data, so both were refit there one past sample longer: {pasts}",
-                        match (self.is_interleaved(), i) {
-                            (false, 0) => "first",
-                            (false, _) => "second",
-                            (true, 0) => "even-block",
-                            (true, _) => "odd-block",
-                        },
+                        if i == 0 { "first" } else { "second" },
                         if ran_away(&s) { "variant's" } else { "null structure's" },
                     ));
                     s = w;
@@ -562,62 +447,6 @@ mod tests {
     use super::*;
     use crate::simulate::Mode;
     use nalgebra::DMatrix;
-
-    /// The interleaved halves alternate blocks of the record, so each spans it: on a ramp
-    /// each half's range is nearly the whole record's, where the contiguous halves split it
-    /// in two; a record shorter than 8 blocks of 4 past windows (or of 50 samples) has none.
-    #[test]
-    fn interleaved_halves_alternate_blocks_and_span_the_record() {
-        let n = 800;
-        let ramp: Vec<f64> = (0..n).map(|k| k as f64).collect();
-        let ds = Dataset {
-            source: "r.csv".into(),
-            names: vec!["p1".into()],
-            cols: vec![ramp],
-        };
-        let [even, odd] = interleaved_halves(&ds, 5).unwrap();
-        assert_eq!((even.len(), odd.len()), (400, 400));
-        let col = |d: &Dataset| d.column("p1").unwrap().to_vec();
-        // blocks of 100: even holds 0..100, 200..300, ...; odd 100..200, 300..400, ...
-        assert_eq!(col(&even)[..3], [0.0, 1.0, 2.0]);
-        assert_eq!(col(&even)[100], 200.0);
-        assert_eq!(col(&odd)[0], 100.0);
-        assert_eq!(*col(&odd).last().unwrap(), 799.0);
-        let span = |d: &Dataset| {
-            let c = col(d);
-            c.iter().copied().fold(f64::NEG_INFINITY, f64::max)
-                - c.iter().copied().fold(f64::INFINITY, f64::min)
-        };
-        let [first, second] = halves(&ds);
-        assert!(span(&even) >= 0.87 * 799.0 && span(&odd) >= 0.87 * 799.0);
-        assert!(span(&first) < 0.5 * 799.0 && span(&second) < 0.5 * 799.0);
-        // 100-sample blocks hold 4 past windows of 25, not of 26
-        assert!(interleaved_halves(&ds, 25).is_some());
-        assert!(interleaved_halves(&ds, 26).is_none());
-    }
-
-    /// A column that sweeps its range once leaves each contiguous half half of it: the
-    /// interleaved halves are chosen; one that cycles through it many times does not, nor does
-    /// a constant column or a column the data lack.
-    #[test]
-    fn a_sweep_chooses_the_interleaved_halves() {
-        let n = 1000;
-        let ramp: Vec<f64> = (0..n)
-            .map(|k| -1.0 + 2.0 * k as f64 / (n - 1) as f64)
-            .collect();
-        let cycles: Vec<f64> = (0..n).map(|k| (0.1 * k as f64).sin()).collect();
-        let ds = Dataset {
-            source: "s.csv".into(),
-            names: vec!["ramp".into(), "cycles".into(), "still".into()],
-            cols: vec![ramp, cycles, vec![0.5; n]],
-        };
-        let words = drift_of(&ds, &["cycles", "ramp"]).unwrap();
-        assert!(
-            words.contains("ramp in [-1.000, -0.001] and [0.001, 1.000]"),
-            "{words}"
-        );
-        assert!(drift_of(&ds, &["cycles", "still", "missing"]).is_none());
-    }
 
     /// An evaluation of measured outputs `y` with free-run outputs `yhat` (one output).
     fn eval(y: &[f64], yhat: &[f64], skip: usize) -> Eval {
