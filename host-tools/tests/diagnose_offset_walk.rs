@@ -12,17 +12,13 @@
 
 mod diagnose_support;
 
+use diagnose_support::{normal, stable};
+
 use lpvid_host::data::Dataset;
 use lpvid_host::linalg::spectral_radius;
 use nalgebra::{DMatrix, DVector};
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
-use rand_distr::{Distribution, StandardNormal};
-
-/// A standard normal draw.
-fn gauss(rng: &mut StdRng) -> f64 {
-    StandardNormal.sample(rng)
-}
 
 /// Spectral radius of the frozen A0 + p A1 over p in [-1, 1] (21 points).
 fn frozen_radius(a0: &DMatrix<f64>, a1: &DMatrix<f64>) -> f64 {
@@ -34,51 +30,25 @@ fn frozen_radius(a0: &DMatrix<f64>, a1: &DMatrix<f64>) -> f64 {
         .fold(0.0, f64::max)
 }
 
-/// A random stable A0 of order `n`: real poles in [-0.5, 0.85), complex pairs of radius
-/// 0.3-0.85, in a random basis.
-fn stable(rng: &mut StdRng, n: usize) -> DMatrix<f64> {
-    let mut a = DMatrix::zeros(n, n);
-    let mut i = 0;
-    while i < n {
-        if i + 1 < n && rng.gen_bool(0.5) {
-            let (r, th): (f64, f64) = (rng.gen_range(0.3..0.85), rng.gen_range(0.2..2.5));
-            a[(i, i)] = r * th.cos();
-            a[(i, i + 1)] = r * th.sin();
-            a[(i + 1, i)] = -r * th.sin();
-            a[(i + 1, i + 1)] = r * th.cos();
-            i += 2;
-        } else {
-            a[(i, i)] = rng.gen_range(-0.5..0.85);
-            i += 1;
-        }
-    }
-    let t = DMatrix::from_fn(n, n, |r, c| gauss(rng) + if r == c { 3.0 } else { 0.0 });
-    let ti = t
-        .clone()
-        .try_inverse()
-        .expect("a diagonally dominant basis");
-    &t * a * &ti
-}
-
 /// Training (2000 samples) and validation (1000) records of plant `seed`, and its words.
 fn plant(seed: u64) -> (Dataset, Dataset, String) {
     let mut rng = StdRng::seed_from_u64(seed ^ 0x0ff5_e7a1);
     let n = [1usize, 2, 2, 3][rng.gen_range(0..4)];
     let a0 = stable(&mut rng, n);
-    let mut a1 = DMatrix::from_fn(n, n, |_, _| 0.3 * gauss(&mut rng));
+    let mut a1 = DMatrix::from_fn(n, n, |_, _| 0.3 * normal(&mut rng));
     while frozen_radius(&a0, &a1) >= 0.95 {
         a1 *= 0.8;
     }
-    let b0 = DVector::from_fn(n, |_, _| gauss(&mut rng));
-    let b1 = DVector::from_fn(n, |_, _| 0.5 * gauss(&mut rng));
-    let c0 = DVector::from_fn(n, |_, _| gauss(&mut rng));
+    let b0 = DVector::from_fn(n, |_, _| normal(&mut rng));
+    let b1 = DVector::from_fn(n, |_, _| 0.5 * normal(&mut rng));
+    let c0 = DVector::from_fn(n, |_, _| normal(&mut rng));
     let noise: f64 = rng.gen_range(0.01..0.08);
     let mut record = |len: usize| {
         let (mut x, mut walk) = (DVector::zeros(n), 0.0f64);
         let (mut u, mut y, mut p) = (vec![], vec![], vec![]);
         for _ in 0..len {
-            walk = (walk + 0.05 * gauss(&mut rng)).clamp(-1.0, 1.0);
-            let uk = gauss(&mut rng);
+            walk = (walk + 0.05 * normal(&mut rng)).clamp(-1.0, 1.0);
+            let uk = normal(&mut rng);
             y.push(c0.dot(&x));
             x = (&a0 + &a1 * walk) * &x + (&b0 + &b1 * walk) * uk;
             u.push(uk);
@@ -87,7 +57,7 @@ fn plant(seed: u64) -> (Dataset, Dataset, String) {
         let mean = y.iter().sum::<f64>() / len as f64;
         let sd = (y.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / len as f64).sqrt();
         for v in &mut y {
-            *v += 0.6 * sd + noise * sd * gauss(&mut rng);
+            *v += 0.6 * sd + noise * sd * normal(&mut rng);
         }
         Dataset {
             source: "walk.csv".into(),
@@ -107,13 +77,7 @@ fn plant(seed: u64) -> (Dataset, Dataset, String) {
 #[ignore = "long tier: make test-long"]
 fn an_offset_under_order_auto_is_named_output_offset() {
     // LPVID_SEEDS=FIRST,COUNT measures the spread on other seeds (the assertions judge those)
-    let (first_seed, count) = std::env::var("LPVID_SEEDS")
-        .ok()
-        .and_then(|s| {
-            let (a, b) = s.split_once(',')?;
-            Some((a.trim().parse().ok()?, b.trim().parse().ok()?))
-        })
-        .unwrap_or((1u64, 8u64));
+    let (first_seed, count) = diagnose_support::env_seeds("LPVID_SEEDS", (1, 8));
     let seeds = first_seed..first_seed + count;
     let mut named = 0;
     let mut own_output = 0;

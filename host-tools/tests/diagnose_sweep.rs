@@ -12,17 +12,13 @@
 
 mod diagnose_support;
 
+use diagnose_support::{normal, stable};
+
 use lpvid_host::data::Dataset;
 use lpvid_host::linalg::spectral_radius;
 use nalgebra::{DMatrix, DVector};
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
-use rand_distr::{Distribution, StandardNormal};
-
-/// A standard normal draw.
-fn gauss(rng: &mut StdRng) -> f64 {
-    StandardNormal.sample(rng)
-}
 
 /// Spectral radius of the frozen A0 + p A1 + p^2 A2 over p in [-1, 1] (21 points).
 fn frozen_radius(a: &[DMatrix<f64>; 3]) -> f64 {
@@ -34,41 +30,15 @@ fn frozen_radius(a: &[DMatrix<f64>; 3]) -> f64 {
         .fold(0.0, f64::max)
 }
 
-/// A random stable A0 of order `n`: real poles in [-0.5, 0.85), complex pairs of radius
-/// 0.3-0.85, in a random basis.
-fn stable(rng: &mut StdRng, n: usize) -> DMatrix<f64> {
-    let mut a = DMatrix::zeros(n, n);
-    let mut i = 0;
-    while i < n {
-        if i + 1 < n && rng.gen_bool(0.5) {
-            let (r, th): (f64, f64) = (rng.gen_range(0.3..0.85), rng.gen_range(0.2..2.5));
-            a[(i, i)] = r * th.cos();
-            a[(i, i + 1)] = r * th.sin();
-            a[(i + 1, i)] = -r * th.sin();
-            a[(i + 1, i + 1)] = r * th.cos();
-            i += 2;
-        } else {
-            a[(i, i)] = rng.gen_range(-0.5..0.85);
-            i += 1;
-        }
-    }
-    let t = DMatrix::from_fn(n, n, |r, c| gauss(rng) + if r == c { 3.0 } else { 0.0 });
-    let ti = t
-        .clone()
-        .try_inverse()
-        .expect("a diagonally dominant basis");
-    &t * a * &ti
-}
-
 /// Training (2000 samples, p1 rising) and validation (1000, p1 falling) records of plant
 /// `seed` with `effect` planted, the plant's order and its words.
 fn plant(effect: &str, seed: u64) -> (Dataset, Dataset, usize, String) {
     let mut rng = StdRng::seed_from_u64(seed ^ 0x5eed_5eee);
     let n = [1usize, 2, 2, 3][rng.gen_range(0..4)];
     let a0 = stable(&mut rng, n);
-    let a1 = DMatrix::from_fn(n, n, |_, _| 0.3 * gauss(&mut rng));
+    let a1 = DMatrix::from_fn(n, n, |_, _| 0.3 * normal(&mut rng));
     let a2 = if effect == "scheduling-nonlinearity" {
-        DMatrix::from_fn(n, n, |_, _| 0.4 * gauss(&mut rng))
+        DMatrix::from_fn(n, n, |_, _| 0.4 * normal(&mut rng))
     } else {
         DMatrix::zeros(n, n)
     };
@@ -77,9 +47,9 @@ fn plant(effect: &str, seed: u64) -> (Dataset, Dataset, usize, String) {
         a[1] *= 0.8;
         a[2] *= 0.8;
     }
-    let b0 = DVector::from_fn(n, |_, _| gauss(&mut rng));
-    let b1 = DVector::from_fn(n, |_, _| 0.5 * gauss(&mut rng));
-    let c0 = DVector::from_fn(n, |_, _| gauss(&mut rng));
+    let b0 = DVector::from_fn(n, |_, _| normal(&mut rng));
+    let b1 = DVector::from_fn(n, |_, _| 0.5 * normal(&mut rng));
+    let c0 = DVector::from_fn(n, |_, _| normal(&mut rng));
     let gain: f64 = if effect == "scheduled-output" {
         rng.gen_range(0.5..1.0) * if rng.gen_bool(0.5) { 1.0 } else { -1.0 }
     } else {
@@ -92,7 +62,7 @@ fn plant(effect: &str, seed: u64) -> (Dataset, Dataset, usize, String) {
         for k in 0..len {
             let ramp = -1.0 + 2.0 * k as f64 / (len - 1) as f64;
             let pk = if rising { ramp } else { -ramp };
-            let uk = gauss(&mut rng);
+            let uk = normal(&mut rng);
             y.push(c0.dot(&x) * (1.0 + gain * pk));
             x = (&a[0] + &a[1] * pk + &a[2] * (pk * pk)) * &x + (&b0 + &b1 * pk) * uk;
             u.push(uk);
@@ -101,7 +71,7 @@ fn plant(effect: &str, seed: u64) -> (Dataset, Dataset, usize, String) {
         let mean = y.iter().sum::<f64>() / len as f64;
         let sd = (y.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / len as f64).sqrt();
         for v in &mut y {
-            *v += noise * sd * gauss(&mut rng);
+            *v += noise * sd * normal(&mut rng);
         }
         Dataset {
             source: "sweep.csv".into(),
@@ -159,18 +129,6 @@ fn named_first(effect: &str, seeds: std::ops::Range<u64>) -> usize {
     named
 }
 
-/// The seeds of a run: `LPVID_SEEDS=FIRST,COUNT` measures the spread on other seeds (the
-/// assertions judge those); 1-6 by default.
-fn seeds() -> (u64, u64) {
-    std::env::var("LPVID_SEEDS")
-        .ok()
-        .and_then(|s| {
-            let (a, b) = s.split_once(',')?;
-            Some((a.trim().parse().ok()?, b.trim().parse().ok()?))
-        })
-        .unwrap_or((1, 6))
-}
-
 /// The scheduled output gain is named first on at least half of the swept plants, the p1^2
 /// dependence on at least a third, and a clean swept plant has no finding on at least five
 /// in six. Measured (the docs' section), seeds 1-6: scheduled-output 6 of 6, p1^2 2 of 6,
@@ -181,7 +139,7 @@ fn seeds() -> (u64, u64) {
 #[test]
 #[ignore = "long tier: make test-long"]
 fn the_scheduling_effects_are_named_on_a_swept_operating_point() {
-    let (first, count) = seeds();
+    let (first, count) = diagnose_support::env_seeds("LPVID_SEEDS", (1, 6));
     let mut rows = vec![];
     for effect in ["scheduled-output", "scheduling-nonlinearity", "clean"] {
         let named = named_first(effect, first..first + count);

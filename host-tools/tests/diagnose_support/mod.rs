@@ -410,3 +410,46 @@ pub fn shared_data() -> Option<PathBuf> {
     let d = root.join("../shared/data");
     d.is_dir().then(|| d.canonicalize().unwrap_or(d))
 }
+
+/// A standard normal draw.
+pub fn normal(rng: &mut StdRng) -> f64 {
+    StandardNormal.sample(rng)
+}
+
+/// A random stable A0 of order `n`: real poles in [-0.5, 0.85), complex pairs of radius
+/// 0.3-0.85, in a random basis.
+pub fn stable(rng: &mut StdRng, n: usize) -> DMatrix<f64> {
+    let mut a = DMatrix::zeros(n, n);
+    let mut i = 0;
+    while i < n {
+        if i + 1 < n && rng.gen_bool(0.5) {
+            let (r, th): (f64, f64) = (rng.gen_range(0.3..0.85), rng.gen_range(0.2..2.5));
+            a[(i, i)] = r * th.cos();
+            a[(i, i + 1)] = r * th.sin();
+            a[(i + 1, i)] = -r * th.sin();
+            a[(i + 1, i + 1)] = r * th.cos();
+            i += 2;
+        } else {
+            a[(i, i)] = rng.gen_range(-0.5..0.85);
+            i += 1;
+        }
+    }
+    let t = DMatrix::from_fn(n, n, |r, c| normal(rng) + if r == c { 3.0 } else { 0.0 });
+    let ti = t
+        .clone()
+        .try_inverse()
+        .expect("a diagonally dominant basis");
+    &t * a * &ti
+}
+
+/// The seeds of a long-tier generator run, `FIRST,COUNT` from the environment variable `var`
+/// (to measure the spread on other seeds; the assertions judge those), else `default`.
+pub fn env_seeds(var: &str, default: (u64, u64)) -> (u64, u64) {
+    std::env::var(var)
+        .ok()
+        .and_then(|s| {
+            let (a, b) = s.split_once(',')?;
+            Some((a.trim().parse().ok()?, b.trim().parse().ok()?))
+        })
+        .unwrap_or(default)
+}
