@@ -30,9 +30,19 @@ fn frozen_radius(a: &[DMatrix<f64>; 3]) -> f64 {
         .fold(0.0, f64::max)
 }
 
-/// Training (2000 samples, p1 rising) and validation (1000, p1 falling) records of plant
-/// `seed` with `effect` planted, the plant's order and its words.
-fn plant(effect: &str, seed: u64) -> (Dataset, Dataset, usize, String) {
+/// How the operating point moves.
+#[derive(Clone, Copy, PartialEq)]
+enum Shape {
+    /// p1 rises from -1 to 1 over the training record and falls back over the validation one.
+    Sweep,
+    /// p1 a random walk (steps of standard deviation 0.05) reflected at -1 and 1, from 0: it
+    /// dwells in part of the range for hundreds of samples.
+    Walk,
+}
+
+/// Training (2000 samples) and validation (1000) records of plant `seed` with `effect`
+/// planted and p1 moving as `shape` says, the plant's order and its words.
+fn plant(effect: &str, seed: u64, shape: Shape) -> (Dataset, Dataset, usize, String) {
     let mut rng = StdRng::seed_from_u64(seed ^ 0x5eed_5eee);
     let n = [1usize, 2, 2, 3][rng.gen_range(0..4)];
     let a0 = stable(&mut rng, n);
@@ -56,12 +66,26 @@ fn plant(effect: &str, seed: u64) -> (Dataset, Dataset, usize, String) {
         0.0
     };
     let noise: f64 = rng.gen_range(0.01..0.08);
+    let mut walk = 0.0f64;
     let mut record = |len: usize, rising: bool| {
         let mut x = DVector::zeros(n);
         let (mut u, mut y, mut p) = (vec![], vec![], vec![]);
         for k in 0..len {
             let ramp = -1.0 + 2.0 * k as f64 / (len - 1) as f64;
-            let pk = if rising { ramp } else { -ramp };
+            let pk = match shape {
+                Shape::Sweep if rising => ramp,
+                Shape::Sweep => -ramp,
+                Shape::Walk => {
+                    walk += 0.05 * normal(&mut rng);
+                    if walk > 1.0 {
+                        walk = 2.0 - walk;
+                    }
+                    if walk < -1.0 {
+                        walk = -2.0 - walk;
+                    }
+                    walk
+                }
+            };
             let uk = normal(&mut rng);
             y.push(c0.dot(&x) * (1.0 + gain * pk));
             x = (&a[0] + &a[1] * pk + &a[2] * (pk * pk)) * &x + (&b0 + &b1 * pk) * uk;
@@ -86,10 +110,10 @@ fn plant(effect: &str, seed: u64) -> (Dataset, Dataset, usize, String) {
 }
 
 /// Per planted effect (and clean plants), how many of the seeds had each effect named first.
-fn named_first(effect: &str, seeds: std::ops::Range<u64>) -> usize {
+fn named_first(effect: &str, seeds: std::ops::Range<u64>, shape: Shape) -> usize {
     let mut named = 0;
     for seed in seeds {
-        let (train, val, n, words) = plant(effect, seed);
+        let (train, val, n, words) = plant(effect, seed, shape);
         let (_, out) =
             diagnose_support::identify_with_order_and_diagnose(&train, &val, 5, &n.to_string());
         let first = out
@@ -104,6 +128,12 @@ fn named_first(effect: &str, seeds: std::ops::Range<u64>) -> usize {
             .first()
             .map_or(1.0, |a| a.mse_before / a.mse_after);
         println!("{effect} seed {seed}: {words}: first {first}, error ratio {ratio:.2}");
+        if std::env::var("LPVID_SWEEP_SUMMARY").is_ok() {
+            println!(
+                "{}",
+                lpvid_host::diagnose::report::summary(&out.report, &[])
+            );
+        }
         // the planted effect's finding and the rule that blocked it, when it was not first
         if let Some(f) = out
             .report
@@ -129,20 +159,15 @@ fn named_first(effect: &str, seeds: std::ops::Range<u64>) -> usize {
     named
 }
 
-/// The scheduled output gain is named first on at least half of the swept plants, the p1^2
-/// dependence on at least a third, and a clean swept plant has no finding on at least five
-/// in six. Measured (the docs' section), seeds 1-6: scheduled-output 6 of 6, p1^2 2 of 6,
-/// clean 0 findings in 6. The p1^2 misses: refits on the first or second half that
-/// extrapolate over the other's range, variants the refined structure matches on a record
-/// where p1^2 matters only near the ends of the sweep, and order-3 plants whose refits on a
-/// half run away.
-#[test]
-#[ignore = "long tier: make test-long"]
-fn the_scheduling_effects_are_named_on_a_swept_operating_point() {
+/// Per effect (and clean plants), how many of the seeds of `LPVID_SEEDS` (default 1-6) had it
+/// named first on operating points moving as `shape`; asserts the scheduled output gain on
+/// at least half, the p1^2 dependence on at least a third and no finding on at least five
+/// clean plants in six.
+fn named_on(shape: Shape) {
     let (first, count) = diagnose_support::env_seeds("LPVID_SEEDS", (1, 6));
     let mut rows = vec![];
     for effect in ["scheduled-output", "scheduling-nonlinearity", "clean"] {
-        let named = named_first(effect, first..first + count);
+        let named = named_first(effect, first..first + count, shape);
         rows.push((effect, named));
     }
     for (effect, named) in &rows {
@@ -156,4 +181,23 @@ fn the_scheduling_effects_are_named_on_a_swept_operating_point() {
         };
         assert!(named as u64 >= need, "{effect}: {named} of {count}");
     }
+}
+
+/// The two scheduling effects and clean plants on a swept operating point. Measured (the
+/// docs' section), seeds 1-6: scheduled-output 6 of 6, p1^2 3 of 6, clean 0 findings in 6
+/// (p1^2 2 of 6 before a half was replicated inside its own operating range). The p1^2
+/// misses: a variant that replicates neither on the whole held-out record nor inside each
+/// half's range, variants the refined structure matches on a record where p1^2 matters only
+/// near the ends of the sweep, and a full-data test without the power (p = 2e-2).
+#[test]
+#[ignore = "long tier: make test-long"]
+fn the_scheduling_effects_are_named_on_a_swept_operating_point() {
+    named_on(Shape::Sweep);
+}
+
+/// The same plants with p1 a reflected random walk.
+#[test]
+#[ignore = "long tier: make test-long"]
+fn the_scheduling_effects_are_named_on_a_wandering_operating_point() {
+    named_on(Shape::Walk);
 }

@@ -385,12 +385,56 @@ fn score_inner(
     null: Option<&Eval>,
     own: bool,
 ) -> Scored {
+    let parts = std::slice::from_ref(val);
+    score_parts_inner(
+        cand,
+        train,
+        parts,
+        base_fit,
+        null.map(std::slice::from_ref),
+        own,
+    )
+}
+
+/// [`score`] on a held-out record cut into `parts`, each scored from its own estimated
+/// initial state, their per-sample losses joined before the test; `null` holds the null's
+/// evaluation on each part. The replication scores a training half's refit only where the
+/// held-out operating point lies in the range that half saw
+/// ([`super::replicate::support_parts`]).
+pub fn score_parts(
+    cand: Candidate,
+    train: &Dataset,
+    parts: &[Dataset],
+    base_fit: &serde_json::Value,
+    null: Option<&[Eval]>,
+) -> Scored {
+    let t0 = std::time::Instant::now();
+    let mut s = score_parts_inner(cand, train, parts, base_fit, null, false);
+    s.seconds = t0.elapsed().as_secs_f64();
+    s
+}
+
+/// The scoring of [`score`], [`score_own`] and [`score_parts`]: the candidate refit on
+/// `train`, evaluated on each part, compared with its null part by part. The [`Scored`]
+/// keeps the evaluation of the first part whose run ran away, else of the first part.
+fn score_parts_inner(
+    cand: Candidate,
+    train: &Dataset,
+    parts: &[Dataset],
+    base_fit: &serde_json::Value,
+    null: Option<&[Eval]>,
+    own: bool,
+) -> Scored {
     let mode = cand.effect.metric();
     let fitted = match fit_spec(&cand.spec, train, base_fit) {
         Ok(f) => f,
         Err(e) => return Scored::failed(cand, None, None, e.to_string()),
     };
-    let eval = match Eval::new(&fitted.model, val) {
+    let evals = match parts
+        .iter()
+        .map(|p| Eval::new(&fitted.model, p))
+        .collect::<Result<Vec<_>, _>>()
+    {
         Ok(e) => e,
         Err(e) => return Scored::failed(cand, Some(fitted), None, e.to_string()),
     };
@@ -400,20 +444,27 @@ fn score_inner(
         (Some(n), None) => n,
         (_, Some(ns)) => match fit_spec(ns, train, base_fit)
             .map_err(|e| e.to_string())
-            .and_then(|f| Eval::new(&f.model, val).map_err(|e| e.to_string()))
-        {
+            .and_then(|f| {
+                parts
+                    .iter()
+                    .map(|p| Eval::new(&f.model, p))
+                    .collect::<Result<Vec<_>, _>>()
+                    .map_err(|e| e.to_string())
+            }) {
             Ok(e) => {
                 own_null = e;
-                &own_null
+                &own_null[..]
             }
             Err(e) => {
                 let why = format!("the structure it is nested in cannot be refit: {e}");
-                return Scored::failed(cand, Some(fitted), Some(eval), why);
+                let first = evals.into_iter().next();
+                return Scored::failed(cand, Some(fitted), first, why);
             }
         },
         (None, None) => {
             let why = "no null structure to compare it with".to_string();
-            return Scored::failed(cand, Some(fitted), Some(eval), why);
+            let first = evals.into_iter().next();
+            return Scored::failed(cand, Some(fitted), first, why);
         }
     };
     // a run that leaves the measured range by an order of magnitude has failed as surely as
@@ -421,7 +472,10 @@ fn score_inner(
     // null that ran away too it would still "explain" nearly all of the error (a Lur'e
     // channel whose frequency the refinement drove to 1e-88 on a plant whose subspace model
     // diverged: after VAF 0, "explains 100 %")
-    if eval.loss(mode).iter().any(|v| !v.is_finite()) || eval.runs_away(mode) {
+    let away = evals
+        .iter()
+        .position(|e| e.loss(mode).iter().any(|v| !v.is_finite()) || e.runs_away(mode));
+    if let Some(i) = away {
         let why = format!(
             "the refit model's {} on the validation data runs away (leaves the measured outputs' range by more than {RUNAWAY} times its half-width, or overflows)",
             match mode {
@@ -429,20 +483,29 @@ fn score_inner(
                 Mode::Predictor => "one-step prediction",
             }
         );
-        return Scored::failed(cand, Some(fitted), Some(eval), why);
+        let e = evals.into_iter().nth(i);
+        return Scored::failed(cand, Some(fitted), e, why);
     }
     // the symmetric memory rule corrects refits of the model's own structure; a variant
     // with its own null structure is compared with it as scored (super::memory::judged)
-    let (basis, loss0, loss1) = if own || cand.null.is_some() {
-        (Basis::EstimatedStart, null.loss(mode), eval.loss(mode))
-    } else {
-        judged(&eval, null, mode)
-    };
+    let (mut basis, mut loss0, mut loss1) = (Basis::EstimatedStart, vec![], vec![]);
+    for (i, (eval, null)) in evals.iter().zip(null).enumerate() {
+        let (b, l0, l1) = if own || cand.null.is_some() {
+            (Basis::EstimatedStart, null.loss(mode), eval.loss(mode))
+        } else {
+            judged(eval, null, mode)
+        };
+        if i == 0 {
+            basis = b;
+        }
+        loss0.extend(l0);
+        loss1.extend(l1);
+    }
     let c = compare(&loss0, &loss1);
     Scored {
         cand,
         fitted: Some(fitted),
-        eval: Some(eval),
+        eval: evals.into_iter().next(),
         explained: c.explained,
         t: c.t,
         p_value: c.p_value,
@@ -667,6 +730,10 @@ pub struct Finding {
     /// Why it is not a finding (the rule of the noise threshold that blocked it; None when
     /// it is above the threshold).
     pub blocked_by: Option<String>,
+    /// Replicated only with each training half scored on the held-out rows inside the
+    /// operating range that half saw, not on the whole held-out record
+    /// ([`super::replicate::Halves`]): its half-refits did not carry over the range.
+    pub replicated_within_range: bool,
 }
 
 /// Evidence for an effect from the residual tests of the model on validation data.

@@ -364,7 +364,7 @@ pub fn scheduling_pair_first(
     };
     let (sn, rn) = (simpler.cand.effect.name(), richer.cand.effect.name());
     let numbers = e.numbers(sn, rn);
-    let named = match e.verdict {
+    let mut named = match e.verdict {
         Encompassed::Richer => Some(richer.cand.effect),
         Encompassed::Simpler => Some(simpler.cand.effect),
         Encompassed::Both | Encompassed::Neither => None,
@@ -382,15 +382,39 @@ pub fn scheduling_pair_first(
             "{numbers}: each adds to the other, both effects are present; {} first (the lower held-out error)",
             a.cand.effect.name()
         ),
-        (None, _) => format!(
-            "{numbers}: neither adds to the other, the data do not tell them apart; {} stays first (the lower held-out error)",
-            a.cand.effect.name()
-        ),
+        (None, _) => {
+            let (a_first, reason) = scheduling_tie(first, &findings[j].0, true);
+            named = (!a_first).then_some(b.cand.effect);
+            format!(
+                "{numbers}: neither adds to the other, the data do not tell them apart; {} {} first ({reason})",
+                if a_first { a } else { b }.cand.effect.name(),
+                if a_first { "stays" } else { "goes" }
+            )
+        }
     };
     if named == Some(b.cand.effect) {
         findings[..=j].rotate_right(1);
     }
     findings[0].0.evidence.insert(0, line);
+}
+
+/// Which of the two scheduling effects goes first when the encompassing test finds that the
+/// data do not tell them apart: `x` (true) or `y`, and why in words. A finding whose
+/// replication held on the whole held-out record goes before one that replicated only with
+/// each training half scored inside its own operating range
+/// ([`super::replicate::Replication::within_range`]): the first one's half-refits carried over
+/// the part of the range each half never saw, the second's did not. Otherwise the lower own
+/// held-out error (`x_lower`). On a swept operating point (`tests/diagnose_sweep.rs`) a
+/// planted scheduled output gain and a p1^2 term in A and B fit the held-out record equally
+/// (the quasi-static state transform (1 + s p) x turns the gain into B quadratic in p);
+/// fitted on half the sweep, p1 and p1^2 are nearly collinear and only the true structure
+/// carried over.
+pub fn scheduling_tie(x: &Finding, y: &Finding, x_lower: bool) -> (bool, &'static str) {
+    match (x.replicated_within_range, y.replicated_within_range) {
+        (false, true) => (true, "its refits on each training half carried over the operating range the half did not see; the other's replicated only inside each half's range"),
+        (true, false) => (false, "its refits on each training half carried over the operating range the half did not see; the other's replicated only inside each half's range"),
+        _ => (x_lower, "the lower held-out error"),
+    }
 }
 
 /// Whether two effects are `order-too-low` and `output-nonlinearity`, in either order: the
@@ -550,5 +574,49 @@ fn describe_addition(c: &Candidate) -> String {
             let d = c.detail.split(',').next().unwrap_or(&c.detail);
             d.to_string()
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::diagnose::memory::Basis;
+
+    fn finding(effect: &'static str, within_range: bool) -> Finding {
+        Finding {
+            effect,
+            detail: String::new(),
+            explained: 0.9,
+            residual: "free-run",
+            t: 5.0,
+            p_value: 1e-6,
+            significant: true,
+            replication: Some(vec![0.8, 0.8]),
+            vaf: None,
+            basis: Basis::EstimatedStart,
+            replication_basis: None,
+            variants: 1,
+            evidence: vec![],
+            blocked_by: None,
+            replicated_within_range: within_range,
+        }
+    }
+
+    /// A tie of the scheduling pair goes to the finding whose half-refits carried over the
+    /// operating range, whichever has the lower error; between two of a kind, to the lower
+    /// error.
+    #[test]
+    fn a_tie_goes_to_the_finding_that_carried_over_the_range() {
+        let whole = finding("scheduled-output", false);
+        let inside = finding("scheduling-nonlinearity", true);
+        assert!(scheduling_tie(&whole, &inside, false).0);
+        assert!(!scheduling_tie(&inside, &whole, true).0);
+        let other = finding("scheduling-nonlinearity", false);
+        assert!(scheduling_tie(&whole, &other, true).0);
+        assert!(!scheduling_tie(&whole, &other, false).0);
+        assert_eq!(
+            scheduling_tie(&whole, &other, true).1,
+            "the lower held-out error"
+        );
     }
 }

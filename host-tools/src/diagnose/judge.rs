@@ -79,6 +79,9 @@ pub(crate) struct Judgement {
     /// The halves refit with a longer past window because a refit ran away, in words
     /// ([`Halves`]).
     pub replication_widened: Vec<String>,
+    /// Replicated only with each half scored inside its own operating range
+    /// ([`Replication::within_range`]).
+    pub within_range: bool,
     /// The best variant, when it did not replicate and this one did in its place, with what
     /// it explained on the halves.
     pub swapped_from: Option<(usize, Vec<Versus>)>,
@@ -208,18 +211,36 @@ fn replicate_on_halves<'b>(
         return None;
     };
     for j in js.iter_mut().filter(|j| j.full_data) {
-        let mut r = halves.replicate(&b.scored[j.index].cand);
+        let best = j.index;
+        let mut r = halves.replicate(&b.scored[best].cand);
         if !replicate::replicated(&r.versus) {
-            let alts =
-                replicate::alternatives(b.scored, j.index, b.tried, b.base_eval, b.larger_eval);
+            let cand = |i: usize| &b.scored[i].cand;
+            let alts = replicate::alternatives(b.scored, best, b.tried, b.base_eval, b.larger_eval);
+            // on the whole held-out record first: the best variant, then its alternatives
+            let mut found = None;
+            let mut failed = Vec::new();
             for i in alts {
-                let r2 = halves.replicate(&b.scored[i].cand);
+                let r2 = halves.replicate(cand(i));
                 if replicate::replicated(&r2.versus) {
-                    j.swapped_from = Some((j.index, r.versus));
-                    j.index = i;
-                    r = r2;
+                    found = Some((i, r2));
                     break;
                 }
+                failed.push((i, r2));
+            }
+            // then a scheduling variant inside each half's operating range, in the same order
+            // (Halves::replicate_within_range)
+            if found.is_none() {
+                let whole = std::iter::once((best, &r)).chain(failed.iter().map(|(i, w)| (*i, w)));
+                found = whole
+                    .filter_map(|(i, w)| Some((i, halves.replicate_within_range(cand(i), w)?)))
+                    .find(|(_, r2)| replicate::replicated(&r2.versus));
+            }
+            if let Some((i, r2)) = found {
+                if i != best {
+                    j.swapped_from = Some((best, r.versus.clone()));
+                    j.index = i;
+                }
+                r = r2;
             }
         }
         j.take_replication(r);
@@ -411,6 +432,7 @@ impl Judgement {
         self.replication = Some(r.versus);
         self.replication_basis = Some(r.bases);
         self.replication_widened = r.widened;
+        self.within_range = r.within_range;
     }
 
     /// Variant `index` of `effect` (one of its `variants`), before any rule is tested.
@@ -424,6 +446,7 @@ impl Judgement {
             replication: None,
             replication_basis: None,
             replication_widened: Vec::new(),
+            within_range: false,
             swapped_from: None,
             set_aside: None,
             vs_user: None,
@@ -552,6 +575,7 @@ impl Judgement {
             variants: self.variants,
             evidence: ev,
             blocked_by: None,
+            replicated_within_range: self.within_range,
         }
     }
 

@@ -104,11 +104,13 @@ fn prefer_simpler_first(
         encompass::Encompassed::Neither
             if encompass::encompassable(s.cand.effect) && encompass::encompassable(r.cand.effect) =>
         {
+            let (simpler_first, reason) =
+                encompass::scheduling_tie(&findings[k].0, &findings[0].0, better_is_simpler);
             (
-                if better_is_simpler { k } else { 0 },
+                if simpler_first { k } else { 0 },
                 format!(
-                    "{numbers}: neither adds to the other, the data do not tell them apart; {} first (the lower held-out error; for the two scheduling effects the encompassing test, not the coefficient count, decides)",
-                    if better_is_simpler { sn } else { rn }
+                    "{numbers}: neither adds to the other, the data do not tell them apart; {} first ({reason}; for the two scheduling effects the encompassing test, not the coefficient count, decides)",
+                    if simpler_first { sn } else { rn }
                 ),
             )
         }

@@ -31,8 +31,8 @@
 //! 409-614, the record's lowest levels, 2.9-6.2 V, no overflow, the offset refit is far off).
 
 use super::effects::{
-    beats_user, held_out_mse, score, significant, versus, versus_larger, with_past, Candidate,
-    Effect, Eval, Scored,
+    beats_user, held_out_mse, score, score_parts, significant, versus, versus_larger, with_past,
+    Candidate, Effect, Eval, Scored,
 };
 use super::fit_eval;
 use super::memory::{judged, Basis};
@@ -127,6 +127,98 @@ pub fn halves(ds: &Dataset) -> [Dataset; 2] {
     [cut(0, n / 2, "first"), cut(n / 2, n, "second")]
 }
 
+/// A stretch of held-out samples outside a half's operating range shorter than this (one
+/// batch of the test, [`super::stats::batch_count`]) does not cut the record
+/// ([`support_parts`]): a brief excursion tests no extrapolation worth the restart.
+pub const SUPPORT_EXCURSION: usize = 25;
+
+/// A held-out part inside a half's operating range shorter than this is not scored
+/// ([`support_parts`]): its initial state takes up to 50 samples
+/// ([`super::effects::x0_samples`]), and 100 more give 4 batches of the test.
+pub const SUPPORT_MIN_PART: usize = 150;
+
+/// The data columns the scheduling functions of `spec` read (not the sample index, not the
+/// model's own outputs): the operating point a refit's range is judged on.
+pub fn operating_columns(spec: &Spec) -> Vec<String> {
+    let map = &spec.signals;
+    let mut cols: Vec<String> = vec![];
+    for f in map.scheduling.iter().flatten() {
+        if f.col != crate::model::SAMPLE_INDEX
+            && map.own_output(f).is_none()
+            && !cols.contains(&f.col)
+        {
+            cols.push(f.col.clone());
+        }
+    }
+    cols
+}
+
+/// The parts of the held-out record `val` on which a refit on the training half `half` is
+/// scored in the replication: the stretches where every operating column (`cols`,
+/// [`operating_columns`]) lies in the range `half` saw, of at least [`SUPPORT_MIN_PART`]
+/// samples, excursions shorter than [`SUPPORT_EXCURSION`] ignored. None when the whole
+/// record is inside (the usual case: scored whole, as before), or when no part is long
+/// enough (scored whole: there is nothing else to judge it on).
+///
+/// Why: a replication asks whether a variant's gain recurs under independent estimation
+/// noise. When the operating point drifts or is swept (p1 rising through the training record
+/// and falling back over the held-out one), each contiguous half sees half of the range, and
+/// its refit scored on the whole held-out record is judged on its extrapolation: on the
+/// sweep generator (`tests/diagnose_sweep.rs`) p1^2 refits on [0, 1] and [-1, 0], where p1
+/// and p1^2 are nearly collinear, ran away on the other half of the range (explained -inf %)
+/// although the variant explained 87-99 % held out. The final fit sees the whole range.
+pub fn support_parts(
+    half: &Dataset,
+    val: &Dataset,
+    cols: &[String],
+) -> Option<Vec<(usize, usize)>> {
+    let n = val.len();
+    let mut inside = vec![true; n];
+    for c in cols {
+        let (Some(h), Some(v)) = (half.column(c), val.column(c)) else {
+            continue;
+        };
+        let (lo, hi) = h
+            .iter()
+            .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), &x| {
+                (a.min(x), b.max(x))
+            });
+        for (k, &x) in v.iter().enumerate() {
+            inside[k] &= x >= lo && x <= hi;
+        }
+    }
+    // excursions shorter than a batch stay in
+    let mut k = 0;
+    while k < n {
+        if inside[k] {
+            k += 1;
+            continue;
+        }
+        let end = (k..n).find(|&j| inside[j]).unwrap_or(n);
+        if end - k < SUPPORT_EXCURSION {
+            inside[k..end].iter_mut().for_each(|v| *v = true);
+        }
+        k = end;
+    }
+    if inside.iter().all(|&v| v) {
+        return None;
+    }
+    let mut parts = vec![];
+    let mut k = 0;
+    while k < n {
+        if !inside[k] {
+            k += 1;
+            continue;
+        }
+        let end = (k..n).find(|&j| !inside[j]).unwrap_or(n);
+        if end - k >= SUPPORT_MIN_PART {
+            parts.push((k, end));
+        }
+        k = end;
+    }
+    (!parts.is_empty()).then_some(parts)
+}
+
 /// The two halves of the training data ([`halves`]) and the model's structure refit on each
 /// and evaluated on the held-out record: what every variant's replication is compared with.
 ///
@@ -141,11 +233,24 @@ pub fn halves(ds: &Dataset) -> [Dataset; 2] {
 /// same data, so the two halves stay independent. (A variant with a null structure of its
 /// own, [`Candidate::null`], is refit with that null; only its own run is checked. When a
 /// wider refit fails or diverges, the half keeps its first score.)
+///
+/// **A half that saw part of the operating range.** When no variant of a scheduling effect
+/// replicates on the whole held-out record and a half saw only part of the range the held-out
+/// operating point covers (a swept or drifting p), its variants are replicated again with
+/// each such half scored on the held-out stretches inside its range
+/// ([`Halves::replicate_within_range`], [`support_parts`]); a variant that replicates only so
+/// is marked ([`Replication::within_range`]): its half-refits have not shown that its
+/// structure carries over the operating range.
 pub struct Halves<'a> {
     /// The first and second half of the training data.
     pub sets: [Dataset; 2],
     /// The null structure refit on each half, evaluated on the held-out record.
     pub nulls: Vec<Eval>,
+    /// Per half, the held-out rows inside the half's operating range ([`support_parts`];
+    /// empty: the whole record is inside).
+    spans: [Vec<(usize, usize)>; 2],
+    /// Per half, those rows as data sets (empty with `spans`).
+    parts: [Vec<Dataset>; 2],
     /// The model's structure.
     spec: &'a Spec,
     /// The held-out record.
@@ -155,6 +260,11 @@ pub struct Halves<'a> {
     /// The null structure one past sample longer refit on each half, when a half's refit
     /// first runs away (None inside: it cannot be refit).
     wider: [OnceCell<Option<Eval>>; 2],
+    /// The null structure refit on each half, evaluated on its parts, when a variant first
+    /// needs them.
+    part_nulls: [OnceCell<Option<Vec<Eval>>>; 2],
+    /// ... one past sample longer.
+    part_wider: [OnceCell<Option<Vec<Eval>>>; 2],
 }
 
 /// A variant's replication on the two halves ([`Halves::replicate`]).
@@ -164,8 +274,24 @@ pub struct Replication {
     /// The comparison each half used ([`super::memory::judged`]: a half's null refit may
     /// lean on its estimated start where the full-data one does too).
     pub bases: Vec<Basis>,
-    /// The halves refit with a longer past window because a refit ran away, in words.
+    /// How a half was scored when not as usual, in words: refit with a longer past window
+    /// because a refit ran away, or scored on part of the held-out record.
     pub widened: Vec<String>,
+    /// Replicated only with each half scored inside its own operating range, not on the whole
+    /// held-out record ([`Halves`]).
+    pub within_range: bool,
+}
+
+/// The model refit by `spec` on `train`, evaluated on each of `parts`; None when it cannot be
+/// refit or evaluated.
+fn fit_eval_parts(
+    spec: &Spec,
+    train: &Dataset,
+    parts: &[Dataset],
+    fit: &serde_json::Value,
+) -> Option<Vec<Eval>> {
+    let f = super::refit::fit_spec(spec, train, fit).ok()?;
+    parts.iter().map(|p| Eval::new(&f.model, p).ok()).collect()
 }
 
 impl<'a> Halves<'a> {
@@ -182,33 +308,113 @@ impl<'a> Halves<'a> {
             .iter()
             .map(|h| fit_eval(spec, h, val, fit))
             .collect::<Option<Vec<_>>>()?;
+        let cols = operating_columns(spec);
+        let spans = [0, 1].map(|i| support_parts(&sets[i], val, &cols).unwrap_or_default());
+        let parts = [0, 1].map(|i| {
+            spans[i]
+                .iter()
+                .map(|&(lo, hi)| rows(val, lo, hi))
+                .collect::<Vec<_>>()
+        });
         Some(Halves {
             sets,
             nulls,
+            spans,
+            parts,
             spec,
             val,
             fit,
             wider: [OnceCell::new(), OnceCell::new()],
+            part_nulls: [OnceCell::new(), OnceCell::new()],
+            part_wider: [OnceCell::new(), OnceCell::new()],
         })
     }
 
     /// Refit `cand` on each half and score it against the null structure refit on the same
-    /// half; a half where either refit runs away is scored again with both one past sample
-    /// longer (the type's docs).
+    /// half, on the whole held-out record; a half where either refit runs away is scored
+    /// again with both one past sample longer (the type's docs).
     pub fn replicate(&self, cand: &Candidate) -> Replication {
+        self.replicate_on(cand, false)
+    }
+
+    /// The replication of a scheduling variant (`scheduled-output`, `scheduling-nonlinearity`)
+    /// with each half that saw part of the operating range scored on the held-out rows inside
+    /// that range, after its replication on the whole record, `whole`, failed (the type's
+    /// docs); None for other effects, or when both halves saw the held-out record's whole
+    /// range. Those two effects add functions of p to the model (an output equation on the
+    /// basis, more basis functions), which is what a half's refit extrapolates; the other
+    /// effects do not change the p-dependence, and on a ramp probe's clean plant a latent
+    /// scheduling sequence replicated so (33 % and 22 % inside, -inf % and -1301 % on the
+    /// whole record) and was named.
+    pub fn replicate_within_range(
+        &self,
+        cand: &Candidate,
+        whole: &Replication,
+    ) -> Option<Replication> {
+        let scheduling = matches!(
+            cand.effect,
+            Effect::ScheduledOutput | Effect::SchedulingNonlinearity
+        );
+        if !scheduling || self.spans.iter().all(|s| s.is_empty()) {
+            return None;
+        }
+        let mut inside = self.replicate_on(cand, true);
+        let pct = whole
+            .versus
+            .iter()
+            .map(|(e, _)| format!("{:.1} %", 100.0 * e))
+            .collect::<Vec<_>>()
+            .join(" and ");
+        inside.widened.push(format!(
+            "on the whole held-out record the halves' refits explain {pct} (they extrapolate beyond the operating range each half saw)"
+        ));
+        inside.within_range = true;
+        Some(inside)
+    }
+
+    /// [`Halves::replicate`] on the whole held-out record, or (`inside`) with each half that
+    /// saw part of the operating range scored on the held-out rows inside that range; a half
+    /// where either refit runs away is scored again with both one past sample longer.
+    fn replicate_on(&self, cand: &Candidate, inside: bool) -> Replication {
         let mode = cand.effect.metric();
         let mut r = Replication {
             versus: Vec::with_capacity(2),
             bases: Vec::with_capacity(2),
             widened: Vec::new(),
+            within_range: false,
         };
-        for (i, (h, null)) in self.sets.iter().zip(&self.nulls).enumerate() {
-            let mut s = score(cand.clone(), h, self.val, self.fit, Some(null));
+        for i in 0..2 {
+            let h = &self.sets[i];
+            let half = if i == 0 { "first" } else { "second" };
+            let in_parts = inside && !self.spans[i].is_empty();
+            let (parts, nulls): (&[Dataset], &[Eval]) = if in_parts {
+                let nulls = self.part_nulls[i]
+                    .get_or_init(|| fit_eval_parts(self.spec, h, &self.parts[i], self.fit));
+                match nulls {
+                    Some(n) => (&self.parts[i], n),
+                    None => {
+                        // the null cannot be refit on the parts: the half is not replicated
+                        r.versus.push((f64::NEG_INFINITY, 1.0));
+                        r.bases.push(Basis::EstimatedStart);
+                        continue;
+                    }
+                }
+            } else {
+                (
+                    std::slice::from_ref(self.val),
+                    std::slice::from_ref(&self.nulls[i]),
+                )
+            };
+            let mut s = score_parts(cand.clone(), h, parts, self.fit, Some(nulls));
             let ran_away = |s: &Scored| s.eval.as_ref().is_some_and(|e| e.runs_away(mode));
+            let null_away = nulls.iter().any(|n| n.runs_away(mode));
             // a variant with its own null is compared with that null, refit inside `score`
-            if ran_away(&s) || (cand.null.is_none() && null.runs_away(mode)) {
+            if ran_away(&s) || (cand.null.is_none() && null_away) {
                 // a wider refit that fails leaves the half as it was scored
-                if let Some(w) = self.wider_score(i, cand).filter(|w| w.error.is_none()) {
+                if let Some(w) = self
+                    .wider_score(i, cand, in_parts)
+                    .filter(|w| w.error.is_none())
+                {
                     let past = |sp: &Spec| sp.opts.past;
                     let null_past = cand.null.as_ref().map_or(past(self.spec), past);
                     let pasts = if null_past == past(&cand.spec) {
@@ -223,12 +429,21 @@ impl<'a> Halves<'a> {
                         )
                     };
                     r.widened.push(format!(
-                        "on the {} half the {} refit ran away from the held-out data, so both were refit there one past sample longer: {pasts}",
-                        if i == 0 { "first" } else { "second" },
+                        "on the {half} half the {} refit ran away from the held-out data, so both were refit there one past sample longer: {pasts}",
                         if ran_away(&s) { "variant's" } else { "null structure's" },
                     ));
                     s = w;
                 }
+            }
+            if in_parts {
+                let rows: Vec<String> = self.spans[i]
+                    .iter()
+                    .map(|(lo, hi)| format!("{lo}-{}", hi - 1))
+                    .collect();
+                r.widened.push(format!(
+                    "the {half} half saw part of the operating range and was scored on the held-out rows inside it ({})",
+                    rows.join(", ")
+                ));
             }
             r.versus.push((s.explained, s.p_value));
             r.bases.push(s.basis);
@@ -237,8 +452,9 @@ impl<'a> Halves<'a> {
     }
 
     /// `cand` and the null structure one past sample longer, refit on half `i` and compared
-    /// there; None when either cannot be made or refit.
-    fn wider_score(&self, i: usize, cand: &Candidate) -> Option<Scored> {
+    /// there (on the whole held-out record, or on the half's parts); None when either cannot
+    /// be made or refit.
+    fn wider_score(&self, i: usize, cand: &Candidate, in_parts: bool) -> Option<Scored> {
         let h = &self.sets[i];
         let past = cand.spec.opts.past + 1;
         let wider = Candidate {
@@ -249,18 +465,29 @@ impl<'a> Halves<'a> {
             },
             ..cand.clone()
         };
-        let null = match &cand.null {
-            Some(_) => None,
-            None => Some(
-                self.wider[i]
-                    .get_or_init(|| {
-                        let spec = with_past(self.spec, self.spec.opts.past + 1, h.len())?;
-                        fit_eval(&spec, h, self.val, self.fit)
-                    })
-                    .as_ref()?,
-            ),
+        let parts: &[Dataset] = if in_parts {
+            &self.parts[i]
+        } else {
+            std::slice::from_ref(self.val)
         };
-        Some(score(wider, h, self.val, self.fit, null))
+        let null: Option<&[Eval]> = match &cand.null {
+            Some(_) => None,
+            None => {
+                let spec = || with_past(self.spec, self.spec.opts.past + 1, h.len());
+                if in_parts {
+                    let n = self.part_wider[i]
+                        .get_or_init(|| fit_eval_parts(&spec()?, h, parts, self.fit))
+                        .as_ref()?;
+                    Some(&n[..])
+                } else {
+                    let n = self.wider[i]
+                        .get_or_init(|| fit_eval(&spec()?, h, self.val, self.fit))
+                        .as_ref()?;
+                    Some(std::slice::from_ref(n))
+                }
+            }
+        };
+        Some(score_parts(wider, h, parts, self.fit, null))
     }
 }
 
@@ -459,6 +686,51 @@ mod tests {
             var_y: vec![1.0],
             skip,
         }
+    }
+
+    /// A record of one scheduling column `p1` (and a constant input).
+    fn sched(p: Vec<f64>) -> Dataset {
+        Dataset {
+            source: "t.csv".into(),
+            names: vec!["u1".into(), "p1".into()],
+            cols: vec![vec![0.0; p.len()], p],
+        }
+    }
+
+    /// A half that saw p1 in [0, 1] of a sweep is scored on the held-out stretch inside that
+    /// range; a stationary record, a brief excursion, a column the model does not schedule on
+    /// and a half that saw none of the held-out range leave the record whole.
+    #[test]
+    fn a_half_is_scored_where_the_held_out_operating_point_lies_in_its_range() {
+        let cols = vec!["p1".to_string()];
+        // the held-out record falls from 1 to -1 over 1000 samples: p1 >= 0 up to row 499
+        let val = sched((0..1000).map(|k| 1.0 - 2.0 * k as f64 / 999.0).collect());
+        let rising = sched((0..1000).map(|k| k as f64 / 999.0).collect());
+        assert_eq!(support_parts(&rising, &val, &cols), Some(vec![(0, 500)]));
+        // stationary: the half saw [-1, 1]
+        let cycles = sched((0..1000).map(|k| (k as f64 * 0.05).sin()).collect());
+        let val_cycles = sched((0..1000).map(|k| 0.99 * (k as f64 * 0.07).cos()).collect());
+        assert_eq!(support_parts(&cycles, &val_cycles, &cols), None);
+        // 24 samples beyond the half's range do not cut the record; 25 do
+        let mut brief = vec![0.5; 1000];
+        brief[400..424].iter_mut().for_each(|v| *v = 2.0);
+        let range = sched((0..1000).map(|k| k as f64 / 999.0).collect());
+        assert_eq!(support_parts(&range, &sched(brief.clone()), &cols), None);
+        brief[424] = 2.0;
+        assert_eq!(
+            support_parts(&range, &sched(brief), &cols),
+            Some(vec![(0, 400), (425, 1000)])
+        );
+        // a column the model does not schedule on, and no overlap at all
+        assert_eq!(support_parts(&rising, &val, &["p2".to_string()]), None);
+        let far = sched(vec![5.0; 1000]);
+        assert_eq!(support_parts(&rising, &far, &cols), None);
+        // a stretch inside shorter than SUPPORT_MIN_PART is not scored
+        let mut short = vec![5.0; 1000];
+        short[100..100 + SUPPORT_MIN_PART - 1]
+            .iter_mut()
+            .for_each(|v| *v = 0.5);
+        assert_eq!(support_parts(&rising, &sched(short), &cols), None);
     }
 
     /// A run that strays an order of magnitude beyond the measured range (about its middle)
