@@ -188,35 +188,32 @@ pub fn support_parts(
         }
     }
     // excursions shorter than a batch stay in
-    let mut k = 0;
-    while k < n {
-        if inside[k] {
-            k += 1;
-            continue;
+    for (lo, hi) in runs(&inside, false) {
+        if hi - lo < SUPPORT_EXCURSION {
+            inside[lo..hi].fill(true);
         }
-        let end = (k..n).find(|&j| inside[j]).unwrap_or(n);
-        if end - k < SUPPORT_EXCURSION {
-            inside[k..end].iter_mut().for_each(|v| *v = true);
-        }
-        k = end;
     }
     if inside.iter().all(|&v| v) {
         return None;
     }
-    let mut parts = vec![];
-    let mut k = 0;
-    while k < n {
-        if !inside[k] {
-            k += 1;
-            continue;
-        }
-        let end = (k..n).find(|&j| !inside[j]).unwrap_or(n);
-        if end - k >= SUPPORT_MIN_PART {
-            parts.push((k, end));
-        }
-        k = end;
-    }
+    let parts: Vec<(usize, usize)> = runs(&inside, true)
+        .into_iter()
+        .filter(|(lo, hi)| hi - lo >= SUPPORT_MIN_PART)
+        .collect();
     (!parts.is_empty()).then_some(parts)
+}
+
+/// The maximal runs `[lo, hi)` of `mask` equal to `value`.
+fn runs(mask: &[bool], value: bool) -> Vec<(usize, usize)> {
+    let mut out = vec![];
+    let mut lo = 0;
+    for run in mask.chunk_by(|a, b| a == b) {
+        if run[0] == value {
+            out.push((lo, lo + run.len()));
+        }
+        lo += run.len();
+    }
+    out
 }
 
 /// The two halves of the training data ([`halves`]) and the model's structure refit on each
