@@ -193,14 +193,17 @@ fn cross_validate(
 }
 
 /// The replication of each variant significant on the full data: refit on each half of the
-/// training data ([`replicate::replicate`]). When the effect's best variant does not hold up,
+/// training data ([`Halves::replicate`]). When the effect's best variant does not hold up,
 /// its next variants that pass every full-data test of a finding take its place, lowest
 /// held-out error first ([`replicate::alternatives`]): on the plant family a quasi-LPV y^2 /
 /// |y| variant or a refined p^2 had the lowest error and its refit on a half diverged, while
 /// another variant of the same effect replicated. Each alternative with its own null must
 /// also beat the model's structure refit (on the planted output-offset plant,
 /// diagnose_planted seed 3, a scheduling-noise alternative that explained 100 % of its own
-/// LPV-ARX null's error replicated).
+/// LPV-ARX null's error replicated). When none replicates on the whole held-out record, a
+/// scheduling effect's variants are tried again in the same order with each half scored inside
+/// its own operating range ([`Halves::replicate_within_range`]): the whole record's evidence
+/// first, since a structure whose half-refits carry over the range has shown more.
 fn replicate_on_halves<'b>(
     b: &Bench<'b>,
     js: &mut [Judgement],
