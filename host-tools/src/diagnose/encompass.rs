@@ -410,10 +410,12 @@ pub fn scheduling_pair_first(
 /// fitted on half the sweep, p1 and p1^2 are nearly collinear and only the true structure
 /// carried over.
 pub fn scheduling_tie(x: &Finding, y: &Finding, x_lower: bool) -> (bool, &'static str) {
-    match (x.replicated_within_range, y.replicated_within_range) {
-        (false, true) => (true, "its refits on each training half carried over the operating range the half did not see; the other's replicated only inside each half's range"),
-        (true, false) => (false, "its refits on each training half carried over the operating range the half did not see; the other's replicated only inside each half's range"),
-        _ => (x_lower, "the lower held-out error"),
+    let (x_in, y_in) = (x.replicated_within_range, y.replicated_within_range);
+    if x_in != y_in {
+        // the one that carried over the range first
+        (y_in, "its refits on each training half carried over the operating range the half did not see; the other's replicated only inside each half's range")
+    } else {
+        (x_lower, "the lower held-out error")
     }
 }
 

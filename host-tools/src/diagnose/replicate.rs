@@ -34,7 +34,6 @@ use super::effects::{
     beats_user, held_out_mse, score, score_parts, significant, versus, versus_larger, with_past,
     Candidate, Effect, Eval, Scored,
 };
-use super::fit_eval;
 use super::memory::{judged, Basis};
 use super::refit::Spec;
 use super::stats::{mean_t, t_sf};
@@ -241,8 +240,8 @@ fn runs(mask: &[bool], value: bool) -> Vec<(usize, usize)> {
 pub struct Halves<'a> {
     /// The first and second half of the training data.
     pub sets: [Dataset; 2],
-    /// The null structure refit on each half, evaluated on the held-out record.
-    pub nulls: Vec<Eval>,
+    /// The null structure refit on each half.
+    nulls: [HalfNull; 2],
     /// Per half, the held-out rows inside the half's operating range ([`support_parts`];
     /// empty: the whole record is inside).
     spans: [Vec<(usize, usize)>; 2],
@@ -256,12 +255,44 @@ pub struct Halves<'a> {
     fit: &'a serde_json::Value,
     /// The null structure one past sample longer refit on each half, when a half's refit
     /// first runs away (None inside: it cannot be refit).
-    wider: [OnceCell<Option<Eval>>; 2],
-    /// The null structure refit on each half, evaluated on its parts, when a variant first
-    /// needs them.
-    part_nulls: [OnceCell<Option<Vec<Eval>>>; 2],
-    /// ... one past sample longer.
-    part_wider: [OnceCell<Option<Vec<Eval>>>; 2],
+    wider: [OnceCell<Option<HalfNull>>; 2],
+}
+
+/// The null structure refit on one training half, evaluated on the whole held-out record and
+/// on the half's parts of it ([`support_parts`]).
+struct HalfNull {
+    /// On the whole held-out record.
+    whole: Eval,
+    /// On each part (empty: no parts; None: it cannot be evaluated there).
+    parts: Option<Vec<Eval>>,
+}
+
+impl HalfNull {
+    /// `spec` refit on the half `train`, evaluated on `val` and on `parts`; None when it
+    /// cannot be refit or evaluated on `val`.
+    fn fit(
+        spec: &Spec,
+        train: &Dataset,
+        val: &Dataset,
+        parts: &[Dataset],
+        fit: &serde_json::Value,
+    ) -> Option<HalfNull> {
+        let model = super::refit::fit_spec(spec, train, fit).ok()?.model;
+        Some(HalfNull {
+            whole: Eval::new(&model, val).ok()?,
+            parts: parts.iter().map(|p| Eval::new(&model, p).ok()).collect(),
+        })
+    }
+
+    /// The evaluations a half is compared on: on its parts (`in_parts`) or on the whole
+    /// record.
+    fn on(&self, in_parts: bool) -> Option<&[Eval]> {
+        if in_parts {
+            self.parts.as_deref()
+        } else {
+            Some(std::slice::from_ref(&self.whole))
+        }
+    }
 }
 
 /// A variant's replication on the two halves ([`Halves::replicate`]).
@@ -279,18 +310,6 @@ pub struct Replication {
     pub within_range: bool,
 }
 
-/// The model refit by `spec` on `train`, evaluated on each of `parts`; None when it cannot be
-/// refit or evaluated.
-fn fit_eval_parts(
-    spec: &Spec,
-    train: &Dataset,
-    parts: &[Dataset],
-    fit: &serde_json::Value,
-) -> Option<Vec<Eval>> {
-    let f = super::refit::fit_spec(spec, train, fit).ok()?;
-    parts.iter().map(|p| Eval::new(&f.model, p).ok()).collect()
-}
-
 impl<'a> Halves<'a> {
     /// The halves of `train` and the structure `spec` refit on each, scored on `val`; None
     /// when the structure cannot be refit on a half.
@@ -301,10 +320,6 @@ impl<'a> Halves<'a> {
         fit: &'a serde_json::Value,
     ) -> Option<Halves<'a>> {
         let sets = halves(train);
-        let nulls = sets
-            .iter()
-            .map(|h| fit_eval(spec, h, val, fit))
-            .collect::<Option<Vec<_>>>()?;
         let cols = operating_columns(spec);
         let spans = [0, 1].map(|i| support_parts(&sets[i], val, &cols).unwrap_or_default());
         let parts = [0, 1].map(|i| {
@@ -313,6 +328,8 @@ impl<'a> Halves<'a> {
                 .map(|&(lo, hi)| rows(val, lo, hi))
                 .collect::<Vec<_>>()
         });
+        let [n0, n1] = [0, 1].map(|i| HalfNull::fit(spec, &sets[i], val, &parts[i], fit));
+        let nulls = [n0?, n1?];
         Some(Halves {
             sets,
             nulls,
@@ -322,8 +339,6 @@ impl<'a> Halves<'a> {
             val,
             fit,
             wider: [OnceCell::new(), OnceCell::new()],
-            part_nulls: [OnceCell::new(), OnceCell::new()],
-            part_wider: [OnceCell::new(), OnceCell::new()],
         })
     }
 
@@ -384,24 +399,13 @@ impl<'a> Halves<'a> {
             let h = &self.sets[i];
             let half = if i == 0 { "first" } else { "second" };
             let in_parts = inside && !self.spans[i].is_empty();
-            let (parts, nulls): (&[Dataset], &[Eval]) = if in_parts {
-                let nulls = self.part_nulls[i]
-                    .get_or_init(|| fit_eval_parts(self.spec, h, &self.parts[i], self.fit));
-                match nulls {
-                    Some(n) => (&self.parts[i], n),
-                    None => {
-                        // the null cannot be refit on the parts: the half is not replicated
-                        r.versus.push((f64::NEG_INFINITY, 1.0));
-                        r.bases.push(Basis::EstimatedStart);
-                        continue;
-                    }
-                }
-            } else {
-                (
-                    std::slice::from_ref(self.val),
-                    std::slice::from_ref(&self.nulls[i]),
-                )
+            let Some(nulls) = self.nulls[i].on(in_parts) else {
+                // the null cannot be evaluated on the parts: the half is not replicated
+                r.versus.push((f64::NEG_INFINITY, 1.0));
+                r.bases.push(Basis::EstimatedStart);
+                continue;
             };
+            let parts = self.held_out(i, in_parts);
             let mut s = score_parts(cand.clone(), h, parts, self.fit, Some(nulls));
             let ran_away = |s: &Scored| s.eval.as_ref().is_some_and(|e| e.runs_away(mode));
             let null_away = nulls.iter().any(|n| n.runs_away(mode));
@@ -462,29 +466,35 @@ impl<'a> Halves<'a> {
             },
             ..cand.clone()
         };
-        let parts: &[Dataset] = if in_parts {
+        let null = match &cand.null {
+            Some(_) => None,
+            None => Some(
+                self.wider[i]
+                    .get_or_init(|| {
+                        let spec = with_past(self.spec, self.spec.opts.past + 1, h.len())?;
+                        HalfNull::fit(&spec, h, self.val, &self.parts[i], self.fit)
+                    })
+                    .as_ref()?
+                    .on(in_parts)?,
+            ),
+        };
+        Some(score_parts(
+            wider,
+            h,
+            self.held_out(i, in_parts),
+            self.fit,
+            null,
+        ))
+    }
+
+    /// What half `i` is scored on: its parts of the held-out record (`in_parts`) or the whole
+    /// record.
+    fn held_out(&self, i: usize, in_parts: bool) -> &[Dataset] {
+        if in_parts {
             &self.parts[i]
         } else {
             std::slice::from_ref(self.val)
-        };
-        let null: Option<&[Eval]> = match &cand.null {
-            Some(_) => None,
-            None => {
-                let spec = || with_past(self.spec, self.spec.opts.past + 1, h.len());
-                if in_parts {
-                    let n = self.part_wider[i]
-                        .get_or_init(|| fit_eval_parts(&spec()?, h, parts, self.fit))
-                        .as_ref()?;
-                    Some(&n[..])
-                } else {
-                    let n = self.wider[i]
-                        .get_or_init(|| fit_eval(&spec()?, h, self.val, self.fit))
-                        .as_ref()?;
-                    Some(std::slice::from_ref(n))
-                }
-            }
-        };
-        Some(score_parts(wider, h, parts, self.fit, null))
+        }
     }
 }
 
