@@ -3,8 +3,8 @@
 //! contract's own-output factors (DESIGN.md section 5, docs/model-format.md), tried both ways:
 //!
 //! - **Lur'e feedback**: an input channel f(y) of the model's own output, f one of y^2, y^3,
-//!   |y| y, sin y, sqrt|y|, and sin(y / spread) when the output's spread is far from 1
-//!   (delay 0: the output equation does not use it);
+//!   |y| y, sin y, sqrt|y|, sign(y) sqrt|y| when y takes both signs, and sin(y / spread) when
+//!   the output's spread is far from 1 (delay 0: the output equation does not use it);
 //! - **quasi-LPV**: a scheduling function y^2 or |y| (only with an output equation that does
 //!   not depend on scheduling).
 //!
@@ -52,8 +52,9 @@ fn own(col: &str, pow: f64, func: Option<FactorFn>) -> Factor {
 type Shapes = Vec<(String, Vec<Factor>)>;
 
 /// The Lur'e channels and scheduling functions of output column `c`, with their names;
-/// `spread` is the standard deviation of the column on the training data.
-fn shapes(c: &str, spread: f64) -> (Shapes, Shapes) {
+/// `spread` is the standard deviation of the column on the training data, `two_signed`
+/// whether it takes both signs there.
+fn shapes(c: &str, spread: f64, two_signed: bool) -> (Shapes, Shapes) {
     let mut lure = vec![
         (format!("{c}^2"), vec![own(c, 2.0, None)]),
         (format!("{c}^3"), vec![own(c, 3.0, None)]),
@@ -64,6 +65,16 @@ fn shapes(c: &str, spread: f64) -> (Shapes, Shapes) {
         (format!("sin({c})"), vec![own(c, 1.0, Some(FactorFn::Sin))]),
         (format!("sqrt|{c}|"), vec![own(c, 0.5, None)]),
     ];
+    // sqrt|y| is even, like y^2; its odd partner, the signed square root (flow through an
+    // orifice between two levels, either way: sign(h) sqrt|h|), as |y| y is y^2's. On an
+    // output of one sign the two are the same channel up to its sign, so it is tried only
+    // where the output takes both signs.
+    if two_signed {
+        lure.push((
+            format!("sign({c})*sqrt|{c}|"),
+            vec![own(c, 1.0, Some(FactorFn::Sign)), own(c, 0.5, None)],
+        ));
+    }
     // sin is the one shape that is not homogeneous: sin(y) suits an angle in radians, and an
     // output in other units (degrees, counts, a scaled sensor) needs sin(omega y).
     // omega = 1 / spread is tried besides it unless the spread is within a factor 1.5 of 1,
@@ -122,7 +133,8 @@ pub fn candidates(ctx: &Context<'_>) -> (Vec<(String, Spec)>, Option<String>) {
         let spread = (col.iter().map(|v| (v - mean) * (v - mean)).sum::<f64>()
             / col.len().max(1) as f64)
             .sqrt();
-        let (lure, sched) = shapes(c, spread);
+        let two_signed = col.iter().any(|&v| v > 0.0) && col.iter().any(|&v| v < 0.0);
+        let (lure, sched) = shapes(c, spread, two_signed);
         for (name, prod) in lure {
             if present(&prod) {
                 continue;
@@ -670,6 +682,23 @@ mod tests {
         assert!(another_minimum(1.0, f64::INFINITY, 750));
         assert!(!another_minimum(f64::NAN, 1.0, 750));
         assert!(!another_minimum(0.5, 1.0, 0)); // no samples: a margin of 2 sqrt 2, never
+    }
+
+    #[test]
+    fn the_signed_square_root_is_tried_where_the_output_takes_both_signs() {
+        let signed = |two_signed| {
+            let (lure, _) = shapes("y1", 1.0, two_signed);
+            lure.into_iter()
+                .find(|(name, _)| name == "sign(y1)*sqrt|y1|")
+        };
+        // an output of one sign (a tank's level): the same channel as sqrt|y1| up to its sign
+        assert!(signed(false).is_none());
+        let (_, prod) = signed(true).expect("the signed square root");
+        let value = |y: f64| prod.iter().map(|f| f.apply(y)).product::<f64>();
+        // odd, the square root of the level either way
+        assert_eq!(value(4.0), 2.0);
+        assert_eq!(value(-4.0), -2.0);
+        assert_eq!(value(0.0), 0.0);
     }
 
     fn sin_of(col: &str, omega: f64) -> Vec<Factor> {
