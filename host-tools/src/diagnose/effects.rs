@@ -731,7 +731,8 @@ pub struct Finding {
     /// it is above the threshold).
     pub blocked_by: Option<String>,
     /// Replicated only with each training half scored on the held-out rows inside the
-    /// operating range that half saw, not on the whole held-out record
+    /// range of the operating point (scheduling signals, or the output fed back) that half
+    /// saw, not on the whole held-out record
     /// ([`super::replicate::Halves`]): its half-refits did not carry over the range.
     pub replicated_within_range: bool,
 }

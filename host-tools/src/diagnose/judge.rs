@@ -200,10 +200,11 @@ fn cross_validate(
 /// another variant of the same effect replicated. Each alternative with its own null must
 /// also beat the model's structure refit (on the planted output-offset plant,
 /// diagnose_planted seed 3, a scheduling-noise alternative that explained 100 % of its own
-/// LPV-ARX null's error replicated). When none replicates on the whole held-out record, a
-/// scheduling effect's variants are tried again in the same order with each half scored inside
-/// its own operating range ([`Halves::replicate_within_range`]): the whole record's evidence
-/// first, since a structure whose half-refits carry over the range has shown more.
+/// LPV-ARX null's error replicated). When none replicates on the whole held-out record, the
+/// variants of a scheduling effect or of `output-nonlinearity` are tried again in the same
+/// order with each half scored inside its own range of the operating point (the scheduling
+/// signals; the output fed back) ([`Halves::replicate_within_range`]): the whole record's
+/// evidence first, since a structure whose half-refits carry over the range has shown more.
 fn replicate_on_halves<'b>(
     b: &Bench<'b>,
     js: &mut [Judgement],
@@ -230,8 +231,8 @@ fn replicate_on_halves<'b>(
                 }
                 failed.push((i, r2));
             }
-            // then a scheduling variant inside each half's operating range, in the same order
-            // (Halves::replicate_within_range)
+            // then a variant inside each half's range of the operating point, in the same
+            // order (Halves::replicate_within_range: scheduling and own-output effects)
             if found.is_none() {
                 let whole = std::iter::once((best, &r)).chain(failed.iter().map(|(i, w)| (*i, w)));
                 found = whole

@@ -38,6 +38,8 @@ use super::memory::{judged, Basis};
 use super::refit::Spec;
 use super::stats::{mean_t, t_sf};
 use crate::data::Dataset;
+use crate::model::ModelFile;
+use std::borrow::Cow;
 use std::cell::OnceCell;
 
 /// When the best variant of an effect does not replicate, at most this many of its other
@@ -152,12 +154,32 @@ pub fn operating_columns(spec: &Spec) -> Vec<String> {
     cols
 }
 
+/// The model's own outputs that the input channels and scheduling functions of `spec` read:
+/// the operating point of an own-output structure (a Lur'e channel f(y), a quasi-LPV
+/// scheduling on y).
+pub fn own_output_columns(spec: &Spec) -> Vec<String> {
+    let map = &spec.signals;
+    let mut cols: Vec<String> = vec![];
+    for f in map.inputs.iter().chain(&map.scheduling).flatten() {
+        if map.own_output(f).is_some() && !cols.contains(&f.col) {
+            cols.push(f.col.clone());
+        }
+    }
+    cols
+}
+
 /// The parts of the held-out record `val` on which a refit on the training half `half` is
-/// scored in the replication: the stretches where every operating column (`cols`,
-/// [`operating_columns`]) lies in the range `half` saw, of at least [`SUPPORT_MIN_PART`]
-/// samples, excursions shorter than [`SUPPORT_EXCURSION`] ignored. None when the whole
-/// record is inside (the usual case: scored whole, as before), or when no part is long
-/// enough (scored whole: there is nothing else to judge it on).
+/// scored in the replication: the stretches where every column of `cols` lies in the range
+/// `half` saw, of at least [`SUPPORT_MIN_PART`] samples. None when the whole record is
+/// inside but for excursions shorter than [`SUPPORT_EXCURSION`] (the usual case: scored
+/// whole, as before), or when no part is long enough (scored whole: there is nothing else
+/// to judge it on). Those short excursions stay in the parts of an operating column
+/// ([`operating_columns`]); with `feedback` (the columns are the model's own outputs,
+/// [`own_output_columns`]) every sample beyond the range cuts the part, since the output
+/// feeds back and a few samples on a branch of f(y) the half never fitted can carry the free
+/// run into another regime (the family's sin plant 217003: the second half saw y1 in
+/// [-4.1, 5.0], the held-out record reached -9.4 and 8.3, and sin(0.51 y1) fitted there ran
+/// at VAF 0 on held-out rows 0-416, whose one long excursion is an 18-sample one to 7.8).
 ///
 /// Why: a replication asks whether a variant's gain recurs under independent estimation
 /// noise. When the operating point drifts or is swept (p1 rising through the training record
@@ -170,6 +192,7 @@ pub fn support_parts(
     half: &Dataset,
     val: &Dataset,
     cols: &[String],
+    feedback: bool,
 ) -> Option<Vec<(usize, usize)>> {
     let n = val.len();
     let mut inside = vec![true; n];
@@ -187,15 +210,16 @@ pub fn support_parts(
         }
     }
     // excursions shorter than a batch stay in
+    let mut filled = inside.clone();
     for (lo, hi) in runs(&inside, false) {
         if hi - lo < SUPPORT_EXCURSION {
-            inside[lo..hi].fill(true);
+            filled[lo..hi].fill(true);
         }
     }
-    if inside.iter().all(|&v| v) {
+    if filled.iter().all(|&v| v) {
         return None;
     }
-    let parts: Vec<(usize, usize)> = runs(&inside, true)
+    let parts: Vec<(usize, usize)> = runs(if feedback { &inside } else { &filled }, true)
         .into_iter()
         .filter(|(lo, hi)| hi - lo >= SUPPORT_MIN_PART)
         .collect();
@@ -236,17 +260,13 @@ fn runs(mask: &[bool], value: bool) -> Vec<(usize, usize)> {
 /// each such half scored on the held-out stretches inside its range
 /// ([`Halves::replicate_within_range`], [`support_parts`]); a variant that replicates only so
 /// is marked ([`Replication::within_range`]): its half-refits have not shown that its
-/// structure carries over the operating range.
+/// structure carries over the operating range. The operating point of an `output-nonlinearity`
+/// variant is the level of the output it feeds back, judged the same way.
 pub struct Halves<'a> {
     /// The first and second half of the training data.
     pub sets: [Dataset; 2],
     /// The null structure refit on each half.
     nulls: [HalfNull; 2],
-    /// Per half, the held-out rows inside the half's operating range ([`support_parts`];
-    /// empty: the whole record is inside).
-    spans: [Vec<(usize, usize)>; 2],
-    /// Per half, those rows as data sets (empty with `spans`).
-    parts: [Vec<Dataset>; 2],
     /// The model's structure.
     spec: &'a Spec,
     /// The held-out record.
@@ -258,39 +278,39 @@ pub struct Halves<'a> {
     wider: [OnceCell<Option<HalfNull>>; 2],
 }
 
-/// The null structure refit on one training half, evaluated on the whole held-out record and
-/// on the half's parts of it ([`support_parts`]).
+/// The null structure refit on one training half, and its evaluation on the whole held-out
+/// record.
 struct HalfNull {
+    /// The refit.
+    model: ModelFile,
     /// On the whole held-out record.
     whole: Eval,
-    /// On each part (empty: no parts; None: it cannot be evaluated there).
-    parts: Option<Vec<Eval>>,
 }
 
 impl HalfNull {
-    /// `spec` refit on the half `train`, evaluated on `val` and on `parts`; None when it
-    /// cannot be refit or evaluated on `val`.
+    /// `spec` refit on the half `train` and evaluated on `val`; None when it cannot be refit
+    /// or evaluated.
     fn fit(
         spec: &Spec,
         train: &Dataset,
         val: &Dataset,
-        parts: &[Dataset],
         fit: &serde_json::Value,
     ) -> Option<HalfNull> {
         let model = super::refit::fit_spec(spec, train, fit).ok()?.model;
-        Some(HalfNull {
-            whole: Eval::new(&model, val).ok()?,
-            parts: parts.iter().map(|p| Eval::new(&model, p).ok()).collect(),
-        })
+        let whole = Eval::new(&model, val).ok()?;
+        Some(HalfNull { model, whole })
     }
 
-    /// The evaluations a half is compared on: on its parts (`in_parts`) or on the whole
-    /// record.
-    fn on(&self, in_parts: bool) -> Option<&[Eval]> {
-        if in_parts {
-            self.parts.as_deref()
-        } else {
-            Some(std::slice::from_ref(&self.whole))
+    /// The evaluations a half is compared on: on `parts` of the held-out record, or on the
+    /// whole record (None); None when it cannot be evaluated on a part.
+    fn on(&self, parts: Option<&[Dataset]>) -> Option<Cow<'_, [Eval]>> {
+        match parts {
+            None => Some(Cow::Borrowed(std::slice::from_ref(&self.whole))),
+            Some(ps) => ps
+                .iter()
+                .map(|p| Eval::new(&self.model, p).ok())
+                .collect::<Option<Vec<_>>>()
+                .map(Cow::Owned),
         }
     }
 }
@@ -310,6 +330,13 @@ pub struct Replication {
     pub within_range: bool,
 }
 
+/// Per half, the held-out stretches inside the range that half saw ([`support_parts`]; empty:
+/// the whole record), and the columns the range is taken on.
+struct Spans {
+    per_half: [Vec<(usize, usize)>; 2],
+    cols: Vec<String>,
+}
+
 impl<'a> Halves<'a> {
     /// The halves of `train` and the structure `spec` refit on each, scored on `val`; None
     /// when the structure cannot be refit on a half.
@@ -320,21 +347,10 @@ impl<'a> Halves<'a> {
         fit: &'a serde_json::Value,
     ) -> Option<Halves<'a>> {
         let sets = halves(train);
-        let cols = operating_columns(spec);
-        let spans = [0, 1].map(|i| support_parts(&sets[i], val, &cols).unwrap_or_default());
-        let parts = [0, 1].map(|i| {
-            spans[i]
-                .iter()
-                .map(|&(lo, hi)| rows(val, lo, hi))
-                .collect::<Vec<_>>()
-        });
-        let [n0, n1] = [0, 1].map(|i| HalfNull::fit(spec, &sets[i], val, &parts[i], fit));
-        let nulls = [n0?, n1?];
+        let [n0, n1] = [0, 1].map(|i| HalfNull::fit(spec, &sets[i], val, fit));
         Some(Halves {
             sets,
-            nulls,
-            spans,
-            parts,
+            nulls: [n0?, n1?],
             spec,
             val,
             fit,
@@ -346,31 +362,26 @@ impl<'a> Halves<'a> {
     /// half, on the whole held-out record; a half where either refit runs away is scored
     /// again with both one past sample longer (the type's docs).
     pub fn replicate(&self, cand: &Candidate) -> Replication {
-        self.replicate_on(cand, false)
+        self.replicate_on(cand, None)
     }
 
-    /// The replication of a scheduling variant (`scheduled-output`, `scheduling-nonlinearity`)
-    /// with each half that saw part of the operating range scored on the held-out rows inside
-    /// that range, after its replication on the whole record, `whole`, failed (the type's
-    /// docs); None for other effects, or when both halves saw the held-out record's whole
-    /// range. Those two effects add functions of p to the model (an output equation on the
-    /// basis, more basis functions), which is what a half's refit extrapolates; the other
-    /// effects do not change the p-dependence, and on a ramp probe's clean plant a latent
-    /// scheduling sequence replicated so (33 % and 22 % inside, -inf % and -1301 % on the
-    /// whole record) and was named.
+    /// The replication of a variant whose structure depends on an operating point, with each
+    /// half that saw part of the point's range scored on the held-out rows inside that range,
+    /// after its replication on the whole record, `whole`, failed (the type's docs); None for
+    /// other effects, or when both halves saw the held-out record's whole range. The
+    /// scheduling effects (`scheduled-output`, `scheduling-nonlinearity`) add functions of p
+    /// to the model (an output equation on the basis, more basis functions) and
+    /// `output-nonlinearity` functions of the output's level, which is what a half's refit
+    /// extrapolates; the other effects do not change how the model depends on either, and on a
+    /// ramp probe's clean plant a latent scheduling sequence replicated so (33 % and 22 %
+    /// inside, -inf % and -1301 % on the whole record) and was named.
     pub fn replicate_within_range(
         &self,
         cand: &Candidate,
         whole: &Replication,
     ) -> Option<Replication> {
-        let scheduling = matches!(
-            cand.effect,
-            Effect::ScheduledOutput | Effect::SchedulingNonlinearity
-        );
-        if !scheduling || self.spans.iter().all(|s| s.is_empty()) {
-            return None;
-        }
-        let mut inside = self.replicate_on(cand, true);
+        let spans = self.spans(cand)?;
+        let mut inside = self.replicate_on(cand, Some(&spans));
         let pct = whole
             .versus
             .iter()
@@ -378,16 +389,34 @@ impl<'a> Halves<'a> {
             .collect::<Vec<_>>()
             .join(" and ");
         inside.widened.push(format!(
-            "on the whole held-out record the halves' refits explain {pct} (they extrapolate beyond the operating range each half saw)"
+            "on the whole held-out record the halves' refits explain {pct} (they extrapolate beyond the range of {} each half saw)",
+            spans.cols.join(", ")
         ));
         inside.within_range = true;
         Some(inside)
     }
 
-    /// [`Halves::replicate`] on the whole held-out record, or (`inside`) with each half that
+    /// Where each half of a replication of `cand` within range is scored: the operating
+    /// columns of the model for a scheduling effect, the outputs a variant feeds back for
+    /// `output-nonlinearity` ([`support_parts`]); None for other effects, or when no half
+    /// saw only part of the range.
+    fn spans(&self, cand: &Candidate) -> Option<Spans> {
+        let (cols, feedback) = match cand.effect {
+            Effect::ScheduledOutput | Effect::SchedulingNonlinearity => {
+                (operating_columns(self.spec), false)
+            }
+            Effect::OutputNonlinearity => (own_output_columns(&cand.spec), true),
+            _ => return None,
+        };
+        let per_half = [0, 1]
+            .map(|i| support_parts(&self.sets[i], self.val, &cols, feedback).unwrap_or_default());
+        (!per_half.iter().all(|s| s.is_empty())).then_some(Spans { per_half, cols })
+    }
+
+    /// [`Halves::replicate`] on the whole held-out record, or (`spans`) with each half that
     /// saw part of the operating range scored on the held-out rows inside that range; a half
     /// where either refit runs away is scored again with both one past sample longer.
-    fn replicate_on(&self, cand: &Candidate, inside: bool) -> Replication {
+    fn replicate_on(&self, cand: &Candidate, spans: Option<&Spans>) -> Replication {
         let mode = cand.effect.metric();
         let mut r = Replication {
             versus: Vec::with_capacity(2),
@@ -398,22 +427,24 @@ impl<'a> Halves<'a> {
         for i in 0..2 {
             let h = &self.sets[i];
             let half = if i == 0 { "first" } else { "second" };
-            let in_parts = inside && !self.spans[i].is_empty();
-            let Some(nulls) = self.nulls[i].on(in_parts) else {
+            let span = spans.map(|s| &s.per_half[i]).filter(|s| !s.is_empty());
+            let parts: Option<Vec<Dataset>> =
+                span.map(|sp| sp.iter().map(|&(lo, hi)| rows(self.val, lo, hi)).collect());
+            let Some(nulls) = self.nulls[i].on(parts.as_deref()) else {
                 // the null cannot be evaluated on the parts: the half is not replicated
                 r.versus.push((f64::NEG_INFINITY, 1.0));
                 r.bases.push(Basis::EstimatedStart);
                 continue;
             };
-            let parts = self.held_out(i, in_parts);
-            let mut s = score_parts(cand.clone(), h, parts, self.fit, Some(nulls));
+            let held = parts.as_deref().unwrap_or(std::slice::from_ref(self.val));
+            let mut s = score_parts(cand.clone(), h, held, self.fit, Some(&nulls));
             let ran_away = |s: &Scored| s.eval.as_ref().is_some_and(|e| e.runs_away(mode));
             let null_away = nulls.iter().any(|n| n.runs_away(mode));
             // a variant with its own null is compared with that null, refit inside `score`
             if ran_away(&s) || (cand.null.is_none() && null_away) {
                 // a wider refit that fails leaves the half as it was scored
                 if let Some(w) = self
-                    .wider_score(i, cand, in_parts)
+                    .wider_score(i, cand, parts.as_deref())
                     .filter(|w| w.error.is_none())
                 {
                     let past = |sp: &Spec| sp.opts.past;
@@ -436,13 +467,14 @@ impl<'a> Halves<'a> {
                     s = w;
                 }
             }
-            if in_parts {
-                let rows: Vec<String> = self.spans[i]
+            if let (Some(sp), Some(spans)) = (span, spans) {
+                let rows: Vec<String> = sp
                     .iter()
                     .map(|(lo, hi)| format!("{lo}-{}", hi - 1))
                     .collect();
                 r.widened.push(format!(
-                    "the {half} half saw part of the operating range and was scored on the held-out rows inside it ({})",
+                    "the {half} half saw part of the range of {} and was scored on the held-out rows inside it ({})",
+                    spans.cols.join(", "),
                     rows.join(", ")
                 ));
             }
@@ -453,9 +485,9 @@ impl<'a> Halves<'a> {
     }
 
     /// `cand` and the null structure one past sample longer, refit on half `i` and compared
-    /// there (on the whole held-out record, or on the half's parts); None when either cannot
-    /// be made or refit.
-    fn wider_score(&self, i: usize, cand: &Candidate, in_parts: bool) -> Option<Scored> {
+    /// there (on the whole held-out record, or on `parts` of it); None when either cannot be
+    /// made or refit.
+    fn wider_score(&self, i: usize, cand: &Candidate, parts: Option<&[Dataset]>) -> Option<Scored> {
         let h = &self.sets[i];
         let past = cand.spec.opts.past + 1;
         let wider = Candidate {
@@ -472,29 +504,14 @@ impl<'a> Halves<'a> {
                 self.wider[i]
                     .get_or_init(|| {
                         let spec = with_past(self.spec, self.spec.opts.past + 1, h.len())?;
-                        HalfNull::fit(&spec, h, self.val, &self.parts[i], self.fit)
+                        HalfNull::fit(&spec, h, self.val, self.fit)
                     })
                     .as_ref()?
-                    .on(in_parts)?,
+                    .on(parts)?,
             ),
         };
-        Some(score_parts(
-            wider,
-            h,
-            self.held_out(i, in_parts),
-            self.fit,
-            null,
-        ))
-    }
-
-    /// What half `i` is scored on: its parts of the held-out record (`in_parts`) or the whole
-    /// record.
-    fn held_out(&self, i: usize, in_parts: bool) -> &[Dataset] {
-        if in_parts {
-            &self.parts[i]
-        } else {
-            std::slice::from_ref(self.val)
-        }
+        let held = parts.unwrap_or(std::slice::from_ref(self.val));
+        Some(score_parts(wider, h, held, self.fit, null.as_deref()))
     }
 }
 
@@ -713,31 +730,57 @@ mod tests {
         // the held-out record falls from 1 to -1 over 1000 samples: p1 >= 0 up to row 499
         let val = sched((0..1000).map(|k| 1.0 - 2.0 * k as f64 / 999.0).collect());
         let rising = sched((0..1000).map(|k| k as f64 / 999.0).collect());
-        assert_eq!(support_parts(&rising, &val, &cols), Some(vec![(0, 500)]));
+        assert_eq!(
+            support_parts(&rising, &val, &cols, false),
+            Some(vec![(0, 500)])
+        );
         // stationary: the half saw [-1, 1]
         let cycles = sched((0..1000).map(|k| (k as f64 * 0.05).sin()).collect());
         let val_cycles = sched((0..1000).map(|k| 0.99 * (k as f64 * 0.07).cos()).collect());
-        assert_eq!(support_parts(&cycles, &val_cycles, &cols), None);
+        assert_eq!(support_parts(&cycles, &val_cycles, &cols, false), None);
         // 24 samples beyond the half's range do not cut the record; 25 do
         let mut brief = vec![0.5; 1000];
         brief[400..424].iter_mut().for_each(|v| *v = 2.0);
         let range = sched((0..1000).map(|k| k as f64 / 999.0).collect());
-        assert_eq!(support_parts(&range, &sched(brief.clone()), &cols), None);
+        assert_eq!(
+            support_parts(&range, &sched(brief.clone()), &cols, false),
+            None
+        );
         brief[424] = 2.0;
         assert_eq!(
-            support_parts(&range, &sched(brief), &cols),
+            support_parts(&range, &sched(brief), &cols, false),
             Some(vec![(0, 400), (425, 1000)])
         );
         // a column the model does not schedule on, and no overlap at all
-        assert_eq!(support_parts(&rising, &val, &["p2".to_string()]), None);
+        assert_eq!(
+            support_parts(&rising, &val, &["p2".to_string()], false),
+            None
+        );
         let far = sched(vec![5.0; 1000]);
-        assert_eq!(support_parts(&rising, &far, &cols), None);
+        assert_eq!(support_parts(&rising, &far, &cols, false), None);
         // a stretch inside shorter than SUPPORT_MIN_PART is not scored
         let mut short = vec![5.0; 1000];
         short[100..100 + SUPPORT_MIN_PART - 1]
             .iter_mut()
             .for_each(|v| *v = 0.5);
-        assert_eq!(support_parts(&rising, &sched(short), &cols), None);
+        assert_eq!(support_parts(&rising, &sched(short), &cols, false), None);
+        // an output fed back: the record is cut only where an excursion of 25 samples or more
+        // leaves the range, and then every sample beyond it cuts the parts
+        let mut out = vec![0.5; 1000];
+        out[300..310].iter_mut().for_each(|v| *v = 2.0);
+        assert_eq!(
+            support_parts(&range, &sched(out.clone()), &cols, true),
+            None
+        );
+        out[600..630].iter_mut().for_each(|v| *v = -1.0);
+        assert_eq!(
+            support_parts(&range, &sched(out.clone()), &cols, true),
+            Some(vec![(0, 300), (310, 600), (630, 1000)])
+        );
+        assert_eq!(
+            support_parts(&range, &sched(out), &cols, false),
+            Some(vec![(0, 600), (630, 1000)])
+        );
     }
 
     /// A run that strays an order of magnitude beyond the measured range (about its middle)
