@@ -68,7 +68,7 @@ fn shapes(c: &str, spread: f64, two_signed: bool) -> (Shapes, Shapes) {
     // sqrt|y| is even, like y^2; its odd partner, the signed square root (flow through an
     // orifice between two levels, either way: sign(h) sqrt|h|), as |y| y is y^2's. On an
     // output of one sign the two are the same channel up to its sign, so it is tried only
-    // where the output takes both signs.
+    // where the output takes both signs ([`two_signed`]).
     if two_signed {
         lure.push((
             format!("sign({c})*sqrt|{c}|"),
@@ -133,8 +133,7 @@ pub fn candidates(ctx: &Context<'_>) -> (Vec<(String, Spec)>, Option<String>) {
         let spread = (col.iter().map(|v| (v - mean) * (v - mean)).sum::<f64>()
             / col.len().max(1) as f64)
             .sqrt();
-        let two_signed = col.iter().any(|&v| v > 0.0) && col.iter().any(|&v| v < 0.0);
-        let (lure, sched) = shapes(c, spread, two_signed);
+        let (lure, sched) = shapes(c, spread, two_signed(col));
         for (name, prod) in lure {
             if present(&prod) {
                 continue;
@@ -165,6 +164,19 @@ pub fn candidates(ctx: &Context<'_>) -> (Vec<(String, Spec)>, Option<String>) {
         .is_empty()
         .then(|| "every output-feedback shape is already in the model".to_string());
     (out, why)
+}
+
+/// Whether an output takes both signs on the training data, each on more than a sliver:
+/// the minority sign carries at least 5 % of sum |y|, i.e. |sum y| / sum |y| < 0.9. That
+/// ratio is the cosine between the channels sign(y) sqrt|y| and sqrt|y|, so below it the
+/// signed square root is a channel of its own; above it (a tank's level that starts at 0
+/// and crosses it only by noise: the physical tank 4024 of `tests/output_nonlinearity.rs`)
+/// it is sqrt|y| up to its sign on a few samples, a near-duplicate that only adds a variant.
+fn two_signed(col: &[f64]) -> bool {
+    let (sum, abs) = col
+        .iter()
+        .fold((0.0, 0.0), |(s, a), &v| (s + v, a + v.abs()));
+    abs > 0.0 && sum.abs() < 0.9 * abs
 }
 
 /// Whether a refinement from a second start reached a lower minimum than the first: its
@@ -693,6 +705,13 @@ mod tests {
         };
         // an output of one sign (a tank's level): the same channel as sqrt|y1| up to its sign
         assert!(signed(false).is_none());
+        assert!(!two_signed(&[1.0, 2.0, 3.0]));
+        // a level that crosses 0 by noise at its start: the minority sign carries 2 %
+        assert!(!two_signed(&[-0.06, 0.02, 1.0, 1.0, 1.0]));
+        // a symmetric output, and one whose minority sign carries 6 % of sum |y|
+        assert!(two_signed(&[-1.0, 1.0, -0.5, 0.4]));
+        assert!(two_signed(&[-0.6, 3.0, 3.0, 3.4]));
+        assert!(!two_signed(&[0.0; 3]));
         let (_, prod) = signed(true).expect("the signed square root");
         let value = |y: f64| prod.iter().map(|f| f.apply(y)).product::<f64>();
         // odd, the square root of the level either way
