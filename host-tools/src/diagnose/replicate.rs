@@ -38,7 +38,7 @@ use super::memory::{judged, Basis};
 use super::refit::Spec;
 use super::stats::{mean_t, t_sf};
 use crate::data::Dataset;
-use crate::model::ModelFile;
+use crate::model::{Factor, ModelFile};
 use std::borrow::Cow;
 use std::cell::OnceCell;
 
@@ -142,16 +142,9 @@ pub const SUPPORT_MIN_PART: usize = 150;
 /// model's own outputs): the operating point a refit's range is judged on.
 pub fn operating_columns(spec: &Spec) -> Vec<String> {
     let map = &spec.signals;
-    let mut cols: Vec<String> = vec![];
-    for f in map.scheduling.iter().flatten() {
-        if f.col != crate::model::SAMPLE_INDEX
-            && map.own_output(f).is_none()
-            && !cols.contains(&f.col)
-        {
-            cols.push(f.col.clone());
-        }
-    }
-    cols
+    distinct_columns(map.scheduling.iter().flatten(), |f| {
+        f.col != crate::model::SAMPLE_INDEX && map.own_output(f).is_none()
+    })
 }
 
 /// The model's own outputs that the input channels and scheduling functions of `spec` read:
@@ -159,9 +152,19 @@ pub fn operating_columns(spec: &Spec) -> Vec<String> {
 /// scheduling on y).
 pub fn own_output_columns(spec: &Spec) -> Vec<String> {
     let map = &spec.signals;
+    distinct_columns(map.inputs.iter().chain(&map.scheduling).flatten(), |f| {
+        map.own_output(f).is_some()
+    })
+}
+
+/// The columns of the factors `keep` selects, each once, in order of first use.
+fn distinct_columns<'f>(
+    factors: impl Iterator<Item = &'f Factor>,
+    keep: impl Fn(&Factor) -> bool,
+) -> Vec<String> {
     let mut cols: Vec<String> = vec![];
-    for f in map.inputs.iter().chain(&map.scheduling).flatten() {
-        if map.own_output(f).is_some() && !cols.contains(&f.col) {
+    for f in factors {
+        if keep(f) && !cols.contains(&f.col) {
             cols.push(f.col.clone());
         }
     }
@@ -333,7 +336,9 @@ pub struct Replication {
 /// Per half, the held-out stretches inside the range that half saw ([`support_parts`]; empty:
 /// the whole record), and the columns the range is taken on.
 struct Spans {
+    /// Per half, the stretches `[lo, hi)` of held-out rows (empty: the whole record).
     per_half: [Vec<(usize, usize)>; 2],
+    /// The columns whose range the stretches are taken on, for the evidence's words.
     cols: Vec<String>,
 }
 
