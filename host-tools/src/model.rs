@@ -687,6 +687,41 @@ impl Feedback {
         self.inputs.is_empty() && self.scheduling.is_empty()
     }
 
+    /// The feedback over samples `start..start + len` of its record (the signals'
+    /// [`crate::lpvss::Signals::slice`]): each loop's data factors over those rows.
+    pub fn rows(&self, start: usize, len: usize) -> Feedback {
+        let cut = |loops: &[(usize, Loop)]| -> Vec<(usize, Loop)> {
+            loops
+                .iter()
+                .map(|(i, lp)| {
+                    let data = lp.data[start..start + len].to_vec();
+                    (
+                        *i,
+                        Loop {
+                            data,
+                            own: lp.own.clone(),
+                        },
+                    )
+                })
+                .collect()
+        };
+        Feedback {
+            inputs: cut(&self.inputs),
+            scheduling: cut(&self.scheduling),
+        }
+    }
+
+    /// The largest delay of an own-output factor (0 without any): how many outputs before a
+    /// sample the feedback reads.
+    pub fn max_delay(&self) -> usize {
+        self.inputs
+            .iter()
+            .chain(&self.scheduling)
+            .flat_map(|(_, lp)| lp.own.iter().map(|o| o.factor.delay))
+            .max()
+            .unwrap_or(0)
+    }
+
     /// The input channels that read an output at the same sample ([`Loop::reads_same_sample`]):
     /// their D columns are zero.
     pub fn same_sample_inputs(&self) -> Vec<usize> {

@@ -660,6 +660,25 @@ pub fn fit_map_frequencies(
                 };
             }
         }
+        // a third start where the model feeds its own output back: the matrices fitted by
+        // multiple shooting (refine::shooting_start: a loop with more than one basin, a
+        // pendulum over the top, makes the whole record's free-run error a rough cost), then
+        // the whole record's descent from them; the lower training error wins
+        if !fb.is_empty() {
+            if let Some((ms, x0)) =
+                crate::refine::shooting_start(&model, &sig, &fb, &d_cols, refine_iters)
+            {
+                let alt =
+                    crate::refine::refine_from(&ms, &x0, &sig, &fb, &d_cols, &[], refine_iters);
+                if alt.mse_after < rf.mse_after.min(rf.mse_before) {
+                    rf = crate::refine::Refined {
+                        mse_before: rf.mse_before,
+                        iterations: rf.iterations + alt.iterations,
+                        ..alt
+                    };
+                }
+            }
+        }
         // the frequencies of sin/cos channels freed last, from the refined model: started
         // at PBSID's matrices with omega free, the descent can shrink omega until the
         // channel is linear in y and stay in that null (the physical pendulum 1011: 86.5 % of

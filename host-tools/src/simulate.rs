@@ -329,26 +329,7 @@ pub fn estimate_x0(m: &LpvSs, sig: &Signals, fb: &Feedback, samples: usize) -> D
         return DVector::zeros(n);
     }
     let head = sig.slice(0, ns);
-    let fb_head = Feedback {
-        inputs: fb
-            .inputs
-            .iter()
-            .map(|(i, lp)| {
-                let mut lp = lp.clone();
-                lp.data.truncate(ns);
-                (*i, lp)
-            })
-            .collect(),
-        scheduling: fb
-            .scheduling
-            .iter()
-            .map(|(i, lp)| {
-                let mut lp = lp.clone();
-                lp.data.truncate(ns);
-                (*i, lp)
-            })
-            .collect(),
-    };
+    let fb_head = fb.rows(0, ns);
     let resid = |x: &DVector<f64>| -> Option<DVector<f64>> {
         let yh = free_run_ss(m, &head, &fb_head, x, ns);
         let r = DVector::from_fn(ns * l, |i, _| head.y[(i / l, i % l)] - yh[(i / l, i % l)]);

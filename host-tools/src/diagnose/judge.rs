@@ -186,7 +186,7 @@ fn cross_validate(
     };
     for j in js.iter_mut().filter(|j| could(j)) {
         let s = &b.scored[j.index];
-        let f = replicate::cross_fold(&s.cand, &folds, &nulls, b.fit);
+        let f = replicate::cross_fold(&replicate::as_fitted(s), &folds, &nulls, b.fit);
         j.pooled = Some(replicate::pooled_p(&s.ratios, &f));
         j.replication = Some(f.iter().map(|x| (x.explained, x.p_value)).collect());
     }
@@ -216,15 +216,15 @@ fn replicate_on_halves<'b>(
     };
     for j in js.iter_mut().filter(|j| j.full_data) {
         let best = j.index;
-        let mut r = halves.replicate(&b.scored[best].cand);
+        let mut r = halves.replicate(&replicate::as_fitted(&b.scored[best]));
         if !replicate::replicated(&r.versus) {
-            let cand = |i: usize| &b.scored[i].cand;
+            let cand = |i: usize| replicate::as_fitted(&b.scored[i]);
             let alts = replicate::alternatives(b.scored, best, b.tried, b.base_eval, b.larger_eval);
             // on the whole held-out record first: the best variant, then its alternatives
             let mut found = None;
             let mut failed = Vec::new();
             for i in alts {
-                let r2 = halves.replicate(cand(i));
+                let r2 = halves.replicate(&cand(i));
                 if replicate::replicated(&r2.versus) {
                     found = Some((i, r2));
                     break;
@@ -236,7 +236,7 @@ fn replicate_on_halves<'b>(
             if found.is_none() {
                 let whole = std::iter::once((best, &r)).chain(failed.iter().map(|(i, w)| (*i, w)));
                 found = whole
-                    .filter_map(|(i, w)| Some((i, halves.replicate_within_range(cand(i), w)?)))
+                    .filter_map(|(i, w)| Some((i, halves.replicate_within_range(&cand(i), w)?)))
                     .find(|(_, r2)| replicate::replicated(&r2.versus));
             }
             if let Some((i, r2)) = found {
@@ -294,7 +294,7 @@ fn second_chance(
     let first = j.swapped_from.as_ref().map_or(j.index, |s| s.0);
     let alts = replicate::alternatives(b.scored, first, b.tried, b.base_eval, b.larger_eval);
     for i in alts.into_iter().filter(|&i| i != j.index) {
-        let r = halves.replicate(&b.scored[i].cand);
+        let r = halves.replicate(&replicate::as_fitted(&b.scored[i]));
         if !replicate::replicated(&r.versus) {
             continue;
         }
@@ -402,7 +402,7 @@ impl Bench<'_> {
         if states::needs_states_check(s) {
             j.states = refs.refined(self).and_then(|r| {
                 let refit = |sp: &Spec| fit_eval(sp, self.train, self.val, self.fit);
-                states::states_check(s, r, refit, self.tried, short)
+                states::states_check(s, self.base_eval, r, refit, self.tried, short)
             });
         }
         if !j.states.as_ref().is_none_or(|c| c.passes) {

@@ -195,7 +195,10 @@ pub fn another_minimum(alt: f64, first: f64, samples: usize) -> bool {
 /// [`super::refit::fit_spec`]): [`crate::pipeline::fit_map`], then the model file with its
 /// `fit` record extended. With the automatic order, a fit with more states than the model
 /// diagnosed (its record's `order`) is fitted again at that order and the one with the lower
-/// [`bic`] kept (the record's `order_choice`).
+/// [`bic`] kept (the record's `order_choice`). Not a fit with fewer: on the cascaded tanks
+/// PBSID read one state for most own-output variants where BIC on the training error
+/// preferred the model's two, and the two-state fits leaned on their estimated start on the
+/// held-out record (docs/bench-diagnose.md, thirty-seventh session).
 pub fn fit(spec: &Spec, train: &Dataset, base_fit: &Value) -> Result<Fitted, RefitError> {
     if spec.arx.is_some() || spec.noise != Noise::Pbsid || spec.scheduled_output {
         return Err(RefitError::Unsupported(
