@@ -663,14 +663,20 @@ pub fn fit_map_frequencies(
         // a third start where the model feeds its own output back: the matrices fitted by
         // multiple shooting (refine::shooting_start: a loop with more than one basin, a
         // pendulum over the top, makes the whole record's free-run error a rough cost), then
-        // the whole record's descent from them; the lower training error wins
+        // the whole record's descent from them; the lower training error wins unless that fit
+        // leans on its initial state where the other forgets its own (refine::leans_on_start:
+        // diagnose's memory rule would block it)
         if !fb.is_empty() {
             if let Some((ms, x0)) =
                 crate::refine::shooting_start(&model, &sig, &fb, &d_cols, refine_iters)
             {
                 let alt =
                     crate::refine::refine_from(&ms, &x0, &sig, &fb, &d_cols, &[], refine_iters);
-                if alt.mse_after < rf.mse_after.min(rf.mse_before) {
+                let leans = |r: &crate::refine::Refined| {
+                    crate::refine::leans_on_start(&r.model, &r.x0, &sig, &fb)
+                };
+                if alt.mse_after < rf.mse_after.min(rf.mse_before) && !(leans(&alt) && !leans(&rf))
+                {
                     rf = crate::refine::Refined {
                         mse_before: rf.mse_before,
                         iterations: rf.iterations + alt.iterations,

@@ -208,6 +208,40 @@ pub fn free_run_estimated(
     }
 }
 
+/// How much a free run still depends on its initial state from row `first` on: (the mean
+/// square of `from_start - from_zero`, the mean square of the error `y - from_start`), each
+/// squared value divided by `var_y` of its output and averaged over outputs and rows
+/// (infinite when not finite). `from_start` and `from_zero` are the same model's free runs
+/// from its initial state and from the zero state; a model that forgets its start has the
+/// first far below the second ([`crate::diagnose::memory`], [`crate::refine::leans_on_start`]).
+pub fn start_influence(
+    y: &DMatrix<f64>,
+    from_start: &DMatrix<f64>,
+    from_zero: &DMatrix<f64>,
+    var_y: &[f64],
+    first: usize,
+) -> (f64, f64) {
+    let (rows, l) = (y.nrows(), y.ncols());
+    let (mut influence, mut error) = (0.0, 0.0);
+    for k in first..rows {
+        for j in 0..l {
+            let d = from_start[(k, j)] - from_zero[(k, j)];
+            let e = y[(k, j)] - from_start[(k, j)];
+            influence += d * d / var_y[j] / l.max(1) as f64;
+            error += e * e / var_y[j] / l.max(1) as f64;
+        }
+    }
+    let mean = |s: f64| {
+        let m = s / rows.saturating_sub(first).max(1) as f64;
+        if m.is_finite() {
+            m
+        } else {
+            f64::INFINITY
+        }
+    };
+    (mean(influence), mean(error))
+}
+
 /// The free run (through `fb`) or the one-step predictor of an lpv-ss model from `x0`.
 pub fn run_ss(
     m: &LpvSs,

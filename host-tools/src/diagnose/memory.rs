@@ -53,31 +53,14 @@ fn tail_start(eval: &Eval) -> usize {
 
 /// [`Memory`] from the estimated-state run inside `eval` and the zero-state run.
 fn second_half(eval: &Eval, from_zero: &DMatrix<f64>) -> Memory {
-    let rows = eval.y.nrows();
-    let first = tail_start(eval);
-    let l = eval.y.ncols().max(1) as f64;
-    let (mut influence, mut error, mut count) = (0.0, 0.0, 0usize);
-    for k in first..rows {
-        for j in 0..eval.y.ncols() {
-            let d = eval.yhat_free[(k, j)] - from_zero[(k, j)];
-            let e = eval.y[(k, j)] - eval.yhat_free[(k, j)];
-            influence += d * d / eval.var_y[j] / l;
-            error += e * e / eval.var_y[j] / l;
-        }
-        count += 1;
-    }
-    let mean = |s: f64| {
-        let m = s / count.max(1) as f64;
-        if m.is_finite() {
-            m
-        } else {
-            f64::INFINITY
-        }
-    };
-    Memory {
-        influence: mean(influence),
-        error: mean(error),
-    }
+    let (influence, error) = crate::simulate::start_influence(
+        &eval.y,
+        &eval.yhat_free,
+        from_zero,
+        &eval.var_y,
+        tail_start(eval),
+    );
+    Memory { influence, error }
 }
 
 /// Per-sample normalised squared error of the free run from the zero state over the second
