@@ -675,8 +675,7 @@ pub fn fit_map_frequencies(
                 let leans = |r: &crate::refine::Refined| {
                     crate::refine::leans_on_start(&r.model, &r.x0, &sig, &fb)
                 };
-                if alt.mse_after < rf.mse_after.min(rf.mse_before) && !(leans(&alt) && !leans(&rf))
-                {
+                if alt.mse_after < rf.mse_after.min(rf.mse_before) && (!leans(&alt) || leans(&rf)) {
                     rf = crate::refine::Refined {
                         mse_before: rf.mse_before,
                         iterations: rf.iterations + alt.iterations,
