@@ -848,9 +848,8 @@ pub fn leans_on_start(m: &LpvSs, x0: &DVector<f64>, sig: &Signals, fb: &Feedback
     let var_y: Vec<f64> = (0..sig.y.ncols())
         .map(|j| sig.y.column(j).variance().max(1e-300))
         .collect();
-    let (influence, error) =
-        crate::simulate::start_influence(&sig.y, &from_start, &from_zero, &var_y, big_n / 2);
-    !influence.is_finite() || influence > error
+    crate::simulate::start_influence(&sig.y, &from_start, &from_zero, &var_y, big_n / 2)
+        .leans_on_start()
 }
 
 /// The stretches of `sig` that begin at `starts` (the last one runs to the end of the

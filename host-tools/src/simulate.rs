@@ -208,27 +208,46 @@ pub fn free_run_estimated(
     }
 }
 
-/// How much a free run still depends on its initial state from row `first` on: (the mean
-/// square of `from_start - from_zero`, the mean square of the error `y - from_start`), each
-/// squared value divided by `var_y` of its output and averaged over outputs and rows
-/// (infinite when not finite). `from_start` and `from_zero` are the same model's free runs
-/// from its initial state and from the zero state; a model that forgets its start has the
-/// first far below the second ([`crate::diagnose::memory`], [`crate::refine::leans_on_start`]).
+/// How much a model's free run still depends on its initial state over the last rows of a
+/// record, next to its own error there (both squared, divided by var y_j, averaged over
+/// outputs and rows): diagnose's memory rule on the held-out record
+/// ([`crate::diagnose::memory`]) and the pipeline's choice of a refinement start on the
+/// training record ([`crate::refine::leans_on_start`]).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Memory {
+    /// Mean square of (free run from the initial state - free run from the zero state)
+    /// (infinite when a run is not finite).
+    pub influence: f64,
+    /// Mean square of the free-run error from the initial state over the same rows.
+    pub error: f64,
+}
+
+impl Memory {
+    /// The initial state changes the output at the end of the record by more than the
+    /// model's own error there: its score leans on a state fitted to the first samples.
+    pub fn leans_on_start(&self) -> bool {
+        !self.influence.is_finite() || self.influence > self.error
+    }
+}
+
+/// The [`Memory`] of a model over rows `first..` from its free runs `from_start` (from its
+/// initial state) and `from_zero` (from the zero state), against the measured `y`.
 pub fn start_influence(
     y: &DMatrix<f64>,
     from_start: &DMatrix<f64>,
     from_zero: &DMatrix<f64>,
     var_y: &[f64],
     first: usize,
-) -> (f64, f64) {
+) -> Memory {
     let (rows, l) = (y.nrows(), y.ncols());
+    let per_output = l.max(1) as f64;
     let (mut influence, mut error) = (0.0, 0.0);
     for k in first..rows {
         for j in 0..l {
             let d = from_start[(k, j)] - from_zero[(k, j)];
             let e = y[(k, j)] - from_start[(k, j)];
-            influence += d * d / var_y[j] / l.max(1) as f64;
-            error += e * e / var_y[j] / l.max(1) as f64;
+            influence += d * d / var_y[j] / per_output;
+            error += e * e / var_y[j] / per_output;
         }
     }
     let mean = |s: f64| {
@@ -239,7 +258,10 @@ pub fn start_influence(
             f64::INFINITY
         }
     };
-    (mean(influence), mean(error))
+    Memory {
+        influence: mean(influence),
+        error: mean(error),
+    }
 }
 
 /// The free run (through `fb`) or the one-step predictor of an lpv-ss model from `x0`.

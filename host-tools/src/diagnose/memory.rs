@@ -20,28 +20,12 @@ use serde::Serialize;
 use super::effects::Eval;
 use crate::simulate::Mode;
 
-/// How much a model's free run still depends on its estimated initial state at the end of
-/// the held-out record, next to its own error there (both normalised as [`Eval::loss`]:
-/// squared, divided by var y_j, averaged over outputs and rows).
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct Memory {
-    /// Mean square of (free run from the estimated state - free run from the zero state)
-    /// over the second half of the scored rows (infinite when a run is not finite).
-    pub influence: f64,
-    /// Mean square of the free-run error from the estimated state over the same rows.
-    pub error: f64,
-}
+pub use crate::simulate::Memory;
 
 impl Memory {
     /// The [`Memory`] of a model evaluated as `eval` (its two free runs are in it).
     pub fn of(eval: &Eval) -> Memory {
         second_half(eval, &eval.yhat_zero)
-    }
-
-    /// The estimated initial state changes the output at the end of the record by more than
-    /// the model's own error there: its score leans on a state fitted to the first samples.
-    pub fn leans_on_start(&self) -> bool {
-        !self.influence.is_finite() || self.influence > self.error
     }
 }
 
@@ -53,14 +37,13 @@ fn tail_start(eval: &Eval) -> usize {
 
 /// [`Memory`] from the estimated-state run inside `eval` and the zero-state run.
 fn second_half(eval: &Eval, from_zero: &DMatrix<f64>) -> Memory {
-    let (influence, error) = crate::simulate::start_influence(
+    crate::simulate::start_influence(
         &eval.y,
         &eval.yhat_free,
         from_zero,
         &eval.var_y,
         tail_start(eval),
-    );
-    Memory { influence, error }
+    )
 }
 
 /// Per-sample normalised squared error of the free run from the zero state over the second
