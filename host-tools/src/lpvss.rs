@@ -222,6 +222,7 @@ impl LpvSs {
         let (mut mu, mut uk) = (vec![0.0; m], vec![0.0; r]);
         let (mut yhat, mut ek) = (vec![0.0; l], vec![0.0; l]);
         mu[0] = 1.0;
+        let step = self.stepper();
         for k in 0..n_samples {
             for q in 0..s {
                 mu[q + 1] = sig.p[(k, q)];
@@ -229,7 +230,7 @@ impl LpvSs {
             for (j, v) in uk.iter_mut().enumerate() {
                 *v = sig.u[(k, j)];
             }
-            self.output_into(&mu, &x, &uk, &mut yhat);
+            step.output_into(&mu, &x, &uk, &mut yhat);
             for j in 0..l {
                 ek[j] = if predictor {
                     sig.y[(k, j)] - yhat[j]
@@ -239,7 +240,7 @@ impl LpvSs {
                 out[(k, j)] = if predictor { yhat[j] } else { yhat[j] + ek[j] };
             }
             let innovation = (predictor || e.is_some()).then_some(&ek[..]);
-            self.state_into(&mu, &x, &uk, innovation, &mut xn);
+            step.state_into(&mu, &x, &uk, innovation, &mut xn);
             std::mem::swap(&mut x, &mut xn);
             if x.iter().any(|v| !v.is_finite() || v.abs() > 1e150) {
                 // diverged: the rest of the output is meaningless; mark it so metrics give 0
@@ -254,47 +255,36 @@ impl LpvSs {
         out
     }
 
-    /// The output equation y = C(mu) x + D(mu) u into `y` (one C or D: parameter-independent),
-    /// without allocating: every simulation's sample loop (`run_x0`,
-    /// `simulate::free_run_ss_into`, the streamed score, BPDN-SV's scorer) is made of this and
-    /// [`LpvSs::state_into`].
-    pub fn output_into(&self, mu: &[f64], x: &[f64], u: &[f64], y: &mut [f64]) {
-        for (j, yj) in y.iter_mut().enumerate() {
-            let mut acc = 0.0;
-            add_scheduled_row(&mut acc, &self.c, mu, j, x);
-            add_scheduled_row(&mut acc, &self.d, mu, j, u);
-            *yj = acc;
+    /// The model laid out for a sample loop ([`Stepper`]): build it once per run.
+    pub fn stepper(&self) -> Stepper {
+        let (n, r, l) = (self.n(), self.r(), self.l());
+        let width = n + r + l;
+        let mut state = Vec::with_capacity(self.m() * n * width);
+        for ((a, b), k) in self.a.iter().zip(&self.b).zip(&self.k) {
+            for row in 0..n {
+                state.extend(a.row(row).iter());
+                state.extend(b.row(row).iter());
+                state.extend(k.row(row).iter());
+            }
         }
-    }
-
-    /// The state equation x+ = sum_i mu_i (A_i x + B_i u + K_i e) into `xn` (`e` None: no
-    /// innovation term), without allocating. This runs once per sample of every simulation
-    /// (the initial-state fit runs n + 1 simulations per iteration): the matrices are read as
-    /// the column-major slices they are, not through nalgebra's two-index checks, with the
-    /// sums formed in the same order as before (bit-identical results).
-    pub fn state_into(&self, mu: &[f64], x: &[f64], u: &[f64], e: Option<&[f64]>, xn: &mut [f64]) {
-        xn.iter_mut().for_each(|v| *v = 0.0);
-        for (i, &w) in mu.iter().enumerate().take(self.m()) {
-            if w == 0.0 {
-                continue;
+        let rows = |mats: &[DMatrix<f64>]| -> Vec<f64> {
+            let mut out = Vec::with_capacity(mats.iter().map(|m| m.len()).sum());
+            for m in mats {
+                for j in 0..m.nrows() {
+                    out.extend(m.row(j).iter());
+                }
             }
-            let (a, b, k) = (&self.a[i], &self.b[i], &self.k[i]);
-            let (a, b, k, rows) = (a.as_slice(), b.as_slice(), k.as_slice(), a.nrows());
-            for (row, v) in xn.iter_mut().enumerate() {
-                let mut acc = 0.0;
-                for (col, xv) in x.iter().enumerate() {
-                    acc += a[col * rows + row] * xv;
-                }
-                for (col, uv) in u.iter().enumerate() {
-                    acc += b[col * rows + row] * uv;
-                }
-                if let Some(e) = e {
-                    for (col, ev) in e.iter().enumerate() {
-                        acc += k[col * rows + row] * ev;
-                    }
-                }
-                *v += w * acc;
-            }
+            out
+        };
+        Stepper {
+            n,
+            r,
+            l,
+            state,
+            c: rows(&self.c),
+            c_count: self.c.len(),
+            d: rows(&self.d),
+            d_count: self.d.len(),
         }
     }
 
@@ -304,18 +294,163 @@ impl LpvSs {
     }
 }
 
-/// acc += sum_i mu_i (M_i v)_j, in the order of i (a single matrix: parameter-independent,
-/// weight 1); the output equation's one term ([`LpvSs::output_into`]).
-fn add_scheduled_row(acc: &mut f64, mats: &[DMatrix<f64>], mu: &[f64], j: usize, v: &[f64]) {
-    let scheduled = mats.len() > 1;
-    for (i, m) in mats.iter().enumerate() {
+/// An [`LpvSs`] laid out for the sample loops: every row of [A^(i) B^(i) K^(i)] and of
+/// C^(i), D^(i) one contiguous slice, so each of a sample's sums is a dot product along a
+/// slice (nalgebra stores columns: a row is strided and every entry bounds-checked). Every
+/// simulation's sample loop ([`LpvSs::run_from`], `simulate::free_run_ss_into`, the streamed
+/// score) is made of [`Stepper::output_into`] and [`Stepper::state_into`], which allocate
+/// nothing; `benches/simulate.rs` measures them. (Adding the columns into the n sums side
+/// by side, the same sums in the same order, measured slower at n = 6 there.)
+#[derive(Debug, Clone, PartialEq)]
+pub struct Stepper {
+    n: usize,
+    r: usize,
+    l: usize,
+    /// Per local model, n rows of [A^(i) B^(i) K^(i)] (n + r + l values each).
+    state: Vec<f64>,
+    /// Per C^(i), l rows of n values.
+    c: Vec<f64>,
+    /// Matrices in `c` (1: parameter-independent).
+    c_count: usize,
+    /// Per D^(i), l rows of r values.
+    d: Vec<f64>,
+    /// Matrices in `d` (1: parameter-independent).
+    d_count: usize,
+}
+
+impl Stepper {
+    /// The output equation y = C(mu) x + D(mu) u into `y` (one C or D: parameter-independent).
+    pub fn output_into(&self, mu: &[f64], x: &[f64], u: &[f64], y: &mut [f64]) {
+        let (n, r, l) = (self.n, self.r, self.l);
+        for (j, yj) in y.iter_mut().enumerate() {
+            let mut acc = 0.0;
+            add_scheduled_row(&mut acc, &self.c, self.c_count, l, n, mu, j, x);
+            add_scheduled_row(&mut acc, &self.d, self.d_count, l, r, mu, j, u);
+            *yj = acc;
+        }
+    }
+
+    /// The state equation x+ = sum_i mu_i (A_i x + B_i u + K_i e) into `xn` (`e` None: no
+    /// innovation term).
+    pub fn state_into(&self, mu: &[f64], x: &[f64], u: &[f64], e: Option<&[f64]>, xn: &mut [f64]) {
+        let (n, r) = (self.n, self.r);
+        let width = n + r + self.l;
+        xn.iter_mut().for_each(|v| *v = 0.0);
+        if n == 0 {
+            return;
+        }
+        for (&w, block) in mu.iter().zip(self.state.chunks_exact(n * width)) {
+            if w == 0.0 {
+                continue;
+            }
+            for (row, v) in block.chunks_exact(width).zip(xn.iter_mut()) {
+                let (a, rest) = row.split_at(n);
+                let (b, k) = rest.split_at(r);
+                let mut acc = 0.0;
+                for (a, xv) in a.iter().zip(x) {
+                    acc += a * xv;
+                }
+                for (b, uv) in b.iter().zip(u) {
+                    acc += b * uv;
+                }
+                if let Some(e) = e {
+                    for (k, ev) in k.iter().zip(e) {
+                        acc += k * ev;
+                    }
+                }
+                *v += w * acc;
+            }
+        }
+    }
+}
+
+/// acc += sum_i mu_i (M_i v)_j, in the order of i (`count` matrices of `rows` rows of `cols`
+/// values, one after the other in `mats`; a single matrix: parameter-independent, weight 1):
+/// the output equation's one term ([`Stepper::output_into`]).
+#[allow(clippy::too_many_arguments)]
+fn add_scheduled_row(
+    acc: &mut f64,
+    mats: &[f64],
+    count: usize,
+    rows: usize,
+    cols: usize,
+    mu: &[f64],
+    j: usize,
+    v: &[f64],
+) {
+    if cols == 0 {
+        return;
+    }
+    let scheduled = count > 1;
+    for (i, m) in mats.chunks_exact(rows * cols).take(count).enumerate() {
         let w = if scheduled { mu[i] } else { 1.0 };
         if w != 0.0 {
-            *acc += w * v
+            *acc += w * m[j * cols..(j + 1) * cols]
                 .iter()
-                .enumerate()
-                .map(|(a, va)| m[(j, a)] * va)
+                .zip(v)
+                .map(|(m, va)| m * va)
                 .sum::<f64>();
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A model of two local models with two states, three inputs, two outputs, K and a
+    /// scheduled C and D, entries from a fixed sequence.
+    fn scheduled_model() -> LpvSs {
+        let mut v = 0.37f64;
+        let mut next = move || {
+            v = (v * 9.1 + 0.13).fract();
+            v - 0.5
+        };
+        let mut mats = |rows: usize, cols: usize| -> Vec<DMatrix<f64>> {
+            (0..2)
+                .map(|_| DMatrix::from_fn(rows, cols, |_, _| next()))
+                .collect()
+        };
+        LpvSs {
+            a: mats(2, 2),
+            b: mats(2, 3),
+            k: mats(2, 2),
+            c: mats(2, 2),
+            d: mats(2, 3),
+        }
+    }
+
+    /// The stepper's two equations are the model's: A(mu) x + B(mu) u + K(mu) e and
+    /// C(mu) x + D(mu) u by nalgebra's products, with and without the innovation term.
+    #[test]
+    fn the_stepper_computes_the_model_equations() {
+        let m = scheduled_model();
+        let step = m.stepper();
+        let (mu, x, u, e) = ([1.0, -0.7], [0.3, -1.1], [0.5, 2.0, -0.25], [0.1, -0.4]);
+        let mu_v = DVector::from_column_slice(&mu);
+        let (xv, uv, ev) = (
+            DVector::from_column_slice(&x),
+            DVector::from_column_slice(&u),
+            DVector::from_column_slice(&e),
+        );
+        let scheduled_k = scheduled(&m.k, &mu_v);
+        let without = m.a_at(&mu_v) * &xv + scheduled(&m.b, &mu_v) * &uv;
+        let with = &without + scheduled_k * &ev;
+        let y = scheduled(&m.c, &mu_v) * &xv + scheduled(&m.d, &mu_v) * &uv;
+        let mut xn = [0.0; 2];
+        step.state_into(&mu, &x, &u, None, &mut xn);
+        assert!((DVector::from_column_slice(&xn) - without).amax() < 1e-14);
+        step.state_into(&mu, &x, &u, Some(&e), &mut xn);
+        assert!((DVector::from_column_slice(&xn) - with).amax() < 1e-14);
+        let mut yk = [0.0; 2];
+        step.output_into(&mu, &x, &u, &mut yk);
+        assert!((DVector::from_column_slice(&yk) - y).amax() < 1e-14);
+        // a single C and D are parameter-independent (weight 1 whatever mu)
+        let mut single = m.clone();
+        single.c.truncate(1);
+        single.d.truncate(1);
+        single.stepper().output_into(&mu, &x, &u, &mut yk);
+        let y1 = &single.c[0] * &xv + &single.d[0] * &uv;
+        assert!((DVector::from_column_slice(&yk) - y1).amax() < 1e-14);
     }
 }

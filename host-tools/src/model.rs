@@ -732,8 +732,31 @@ impl Feedback {
             .collect()
     }
 
+    /// Overwrite the inputs `u` (r values) and scheduling signals `p` of sample k with the
+    /// loops' values from the run's outputs `y` (rows `< avail` known); a loop on a
+    /// scheduling signal beyond `p` is not written (the model has no weight for it). The
+    /// state-space free run's sample loop ([`crate::simulate::free_run_ss_into`]).
+    pub fn fill_sample(
+        &self,
+        k: usize,
+        y: &DMatrix<f64>,
+        avail: usize,
+        u: &mut [f64],
+        p: &mut [f64],
+    ) {
+        for (i, l) in &self.inputs {
+            u[*i] = l.value(k, y, avail);
+        }
+        for (q, l) in &self.scheduling {
+            if let Some(v) = p.get_mut(*q) {
+                *v = l.value(k, y, avail);
+            }
+        }
+    }
+
     /// Overwrite sample k of the inputs `u` (N x r) and scheduling `p` (N x s) with the loops'
-    /// values from the run's outputs `y` (rows `< avail` known).
+    /// values from the run's outputs `y` (rows `< avail` known): the ARX recursion, which
+    /// reads the inputs at past lags ([`crate::simulate::arx_run_from`]).
     pub fn fill(
         &self,
         k: usize,

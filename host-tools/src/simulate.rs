@@ -309,51 +309,36 @@ pub fn free_run_ss_into(
 ) -> bool {
     let big_n = sig.len();
     let (n, r, l, mm) = (m.n(), m.r(), m.l(), m.m());
-    let s = sig.p.ncols();
-    // the feedback writes the signals it computes into copies; without feedback the
-    // record's own are read (estimate_x0 runs this n + 1 times per iteration)
-    let (mut u_fb, mut p_fb) = if fb.is_empty() {
-        (DMatrix::zeros(0, 0), DMatrix::zeros(0, 0))
-    } else {
-        (sig.u.clone(), sig.p.clone())
-    };
+    let s = sig.p.ncols().min(mm - 1);
+    // the sample loop allocates nothing: the feedback writes the signals it computes into
+    // the sample's own inputs and weights, over the record's
+    let step = m.stepper();
     let mut xn = vec![0.0; n];
     let mut uk = vec![0.0; r];
     let mut yk = vec![0.0; l];
     let mut mu = vec![1.0; mm];
     for k in start..upto.min(big_n) {
+        for q in 0..s {
+            mu[q + 1] = sig.p[(k, q)];
+        }
+        for (j, v) in uk.iter_mut().enumerate() {
+            *v = sig.u[(k, j)];
+        }
         // the signals that read outputs up to k-1 (a delay-0 own value counts as 0 here: the
         // output equation does not use it, SignalMap::check_loops)
         if !fb.is_empty() {
-            fb.fill(k, out, k, &mut u_fb, &mut p_fb);
+            fb.fill_sample(k, out, k, &mut uk, &mut mu[1..=s]);
         }
-        let (u, p) = if fb.is_empty() {
-            (&sig.u, &sig.p)
-        } else {
-            (&u_fb, &p_fb)
-        };
-        for q in 0..s.min(mm - 1) {
-            mu[q + 1] = p[(k, q)];
-        }
-        for (j, v) in uk.iter_mut().enumerate() {
-            *v = u[(k, j)];
-        }
-        m.output_into(&mu, x, &uk, &mut yk);
+        step.output_into(&mu, x, &uk, &mut yk);
         let finite = yk.iter().all(|v| v.is_finite());
         for (j, v) in yk.iter().enumerate() {
             out[(k, j)] = *v;
         }
         // ... then with y_k known
         if !fb.is_empty() {
-            fb.fill(k, out, k + 1, &mut u_fb, &mut p_fb);
-            for q in 0..s.min(mm - 1) {
-                mu[q + 1] = p_fb[(k, q)];
-            }
-            for (j, v) in uk.iter_mut().enumerate() {
-                *v = u_fb[(k, j)];
-            }
+            fb.fill_sample(k, out, k + 1, &mut uk, &mut mu[1..=s]);
         }
-        m.state_into(&mu, x, &uk, None, &mut xn);
+        step.state_into(&mu, x, &uk, None, &mut xn);
         std::mem::swap(x, &mut xn);
         if !finite || x.iter().any(|v| !v.is_finite() || v.abs() > 1e150) {
             for kk in k + 1..big_n {

@@ -17,8 +17,8 @@
 //!   in-memory path: lpv-arx models, factors on the sample index and smoothed factors
 //!   (`"smooth"`, a low-pass over the whole record) (`run_streamable`).
 //!
-//! All of them run the one simulation step ([`crate::lpvss::LpvSs::output_into`] and
-//! [`crate::lpvss::LpvSs::state_into`], struct `ChunkRun`), so the outputs equal the
+//! All of them run the one simulation step ([`crate::lpvss::Stepper::output_into`] and
+//! [`crate::lpvss::Stepper::state_into`], struct `ChunkRun`), so the outputs equal the
 //! in-memory ones to the bit and the scores to rounding (Welford sums against two-pass).
 //!
 //! Nothing here reports a data error of its own: anything the streamed path does not handle
@@ -39,7 +39,7 @@ use serde_json::{json, Value};
 use nalgebra::DMatrix;
 
 use crate::data::{stage_writer, DataError, Dataset, StagedWrite, MAX_LINE_BYTES};
-use crate::lpvss::{LpvSs, Signals};
+use crate::lpvss::{LpvSs, Signals, Stepper};
 use crate::model::{Feedback, ModelFile, ModelKind, SignalMap, SAMPLE_INDEX};
 use crate::observer;
 use crate::pbsid::stream::{streamable, NotStreamed, PassOne, PassTwo};
@@ -242,10 +242,12 @@ const CHUNKS_AHEAD: usize = 1;
 /// next: the free run or the one-step predictor from an initial state x0, and the scores of
 /// [`crate::simulate::score_from`] from running sums (VAF and BFR per output over the
 /// samples after the first `skip`). The step is the shared allocation-free one
-/// ([`LpvSs::output_into`], [`LpvSs::state_into`]), as in [`LpvSs::run_from`], so the
+/// ([`Stepper::output_into`], [`Stepper::state_into`]), as in [`LpvSs::run_from`], so the
 /// outputs are those of the in-memory run to the bit.
 struct ChunkRun<'a> {
     model: &'a LpvSs,
+    /// The model laid out for the sample loop.
+    step: Stepper,
     predictor: bool,
     /// Leading samples not scored (used for the initial state).
     skip: usize,
@@ -277,6 +279,7 @@ impl<'a> ChunkRun<'a> {
         mu[0] = 1.0;
         ChunkRun {
             model,
+            step: model.stepper(),
             predictor: mode == Mode::Predictor,
             skip,
             x: x0.to_vec(),
@@ -343,7 +346,8 @@ impl<'a> ChunkRun<'a> {
             } else if self.stopped {
                 self.yk.iter_mut().for_each(|v| *v = f64::NAN);
             } else {
-                m.output_into(&self.mu, &self.x, &self.u, &mut self.yk);
+                self.step
+                    .output_into(&self.mu, &self.x, &self.u, &mut self.yk);
             }
             if self.diverged_at.is_none()
                 && self.yk.iter().any(|v| !v.is_finite() || v.abs() > DIVERGED)
@@ -368,7 +372,8 @@ impl<'a> ChunkRun<'a> {
             }
             if !self.stopped && !feedback {
                 let innovation = self.predictor.then_some(&self.ek[..]);
-                m.state_into(&self.mu, &self.x, &self.u, innovation, &mut self.xn);
+                self.step
+                    .state_into(&self.mu, &self.x, &self.u, innovation, &mut self.xn);
                 std::mem::swap(&mut self.x, &mut self.xn);
                 if self.x.iter().any(|v| !v.is_finite() || v.abs() > 1e150) {
                     self.stopped = true;

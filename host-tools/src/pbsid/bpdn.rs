@@ -563,8 +563,8 @@ fn dot(a: &[f64], b: &[f64]) -> f64 {
 /// columns, so a step adds w = m(n + r) scaled columns of length n into the new state: each
 /// x_i is still summed over j = 0..w in order from -0.0 (the sums of a row-by-row dot
 /// product, to the bit), but the n sums run side by side in vector lanes; orders 1..=8 are
-/// compiled with n fixed (the state in registers). `LpvSs::state_into` / `output_into` walk
-/// the column-major matrices with bounds checks (BPDN-SV's scorer was half of a B2 BPDN-SV
+/// compiled with n fixed (the state in registers). `Stepper::state_into` / `output_into` walk
+/// the model row by row, one sum per state (BPDN-SV's scorer was half of a B2 BPDN-SV
 /// fit's instructions, callgrind).
 pub struct FreeRun {
     n: usize,
