@@ -362,17 +362,25 @@ pub fn score(
 }
 
 /// [`score`] against the candidate's own null structure ([`Candidate::null`]) already fitted
-/// and evaluated, `own_null`: compared as scored (the symmetric memory rule is for refits of
-/// the model's own structure, [`super::memory::judged`]).
+/// (`null_fit`, on `train` with `base_fit`) and evaluated, `own_null`: compared as scored (the
+/// symmetric memory rule is for refits of the model's own structure,
+/// [`super::memory::judged`]). A candidate nested in that structure starts from its fit
+/// ([`super::refit::fit_spec_on`]) rather than refitting it: the same fit, done once.
 pub fn score_own(
     cand: Candidate,
     train: &Dataset,
     val: &Dataset,
     base_fit: &serde_json::Value,
     own_null: &Eval,
+    null_fit: &Fitted,
 ) -> Scored {
     let t0 = std::time::Instant::now();
-    let mut s = score_inner(cand, train, val, base_fit, Some(own_null), true);
+    // the same structure, as score_all keys the nulls
+    let same = |a: Option<&Spec>, b: Option<&Spec>| format!("{a:?}") == format!("{b:?}");
+    let nested = same(cand.spec.nested_in.as_deref(), cand.null.as_ref()).then_some(null_fit);
+    let parts = std::slice::from_ref(val);
+    let null = Some(std::slice::from_ref(own_null));
+    let mut s = score_parts_inner(cand, train, parts, base_fit, null, true, nested);
     s.seconds = t0.elapsed().as_secs_f64();
     s
 }
@@ -393,6 +401,7 @@ fn score_inner(
         base_fit,
         null.map(std::slice::from_ref),
         own,
+        None,
     )
 }
 
@@ -409,14 +418,15 @@ pub fn score_parts(
     null: Option<&[Eval]>,
 ) -> Scored {
     let t0 = std::time::Instant::now();
-    let mut s = score_parts_inner(cand, train, parts, base_fit, null, false);
+    let mut s = score_parts_inner(cand, train, parts, base_fit, null, false, None);
     s.seconds = t0.elapsed().as_secs_f64();
     s
 }
 
 /// The scoring of [`score`], [`score_own`] and [`score_parts`]: the candidate refit on
-/// `train`, evaluated on each part, compared with its null part by part. The [`Scored`]
-/// keeps the evaluation of the first part whose run ran away, else of the first part.
+/// `train` (from `nested`, the structure it is nested in already fitted, when given),
+/// evaluated on each part, compared with its null part by part. The [`Scored`] keeps the
+/// evaluation of the first part whose run ran away, else of the first part.
 fn score_parts_inner(
     cand: Candidate,
     train: &Dataset,
@@ -424,9 +434,10 @@ fn score_parts_inner(
     base_fit: &serde_json::Value,
     null: Option<&[Eval]>,
     own: bool,
+    nested: Option<&Fitted>,
 ) -> Scored {
     let mode = cand.effect.metric();
-    let fitted = match fit_spec(&cand.spec, train, base_fit) {
+    let fitted = match super::refit::fit_spec_on(&cand.spec, train, base_fit, nested) {
         Ok(f) => f,
         Err(e) => return Scored::failed(cand, None, None, e.to_string()),
     };

@@ -265,16 +265,19 @@ fn score_all(
     // (the BC-IV fit without its correction, the refined fit of an own-output candidate's
     // structure): refit once per distinct structure, not once per candidate
     // (structure, its held-out evaluation)
-    let mut nulls: Vec<(String, Eval)> = Vec::new();
+    // (structure, its fit, its held-out evaluation); a candidate nested in its null starts
+    // from this fit (effects::score_own)
+    let mut nulls: Vec<(String, Fitted, Eval)> = Vec::new();
     for c in &cands {
         let Some(ns) = &c.null else { continue };
         let key = format!("{ns:?}");
-        if nulls.iter().any(|(k, _)| *k == key) {
+        if nulls.iter().any(|(k, ..)| *k == key) {
             continue;
         }
         // a null that cannot be refit is left to `effects::score`, which reports why
-        if let Some(e) = fit_eval(ns, train, val, fit) {
-            nulls.push((key, e));
+        let fitted = fit_spec(ns, train, fit).ok();
+        if let Some((f, e)) = fitted.and_then(|f| Eval::new(&f.model, val).ok().map(|e| (f, e))) {
+            nulls.push((key, f, e));
         }
     }
     let jobs: Vec<(usize, effects::Candidate)> = cands.into_iter().enumerate().collect();
@@ -291,11 +294,11 @@ fn score_all(
                 let c = jobs[i].1.clone();
                 let own = c.null.as_ref().and_then(|ns| {
                     let key = format!("{ns:?}");
-                    nulls.iter().find(|(k, _)| *k == key).map(|(_, l)| l)
+                    nulls.iter().find(|(k, ..)| *k == key)
                 });
                 // the own null's evaluation is given: score against it without refitting it
                 let sc = match own {
-                    Some(o) => effects::score_own(c, train, val, fit, o),
+                    Some((_, f, o)) => effects::score_own(c, train, val, fit, o, f),
                     None => effects::score(c, train, val, fit, Some(base)),
                 };
                 let done = {

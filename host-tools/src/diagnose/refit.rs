@@ -350,6 +350,22 @@ fn select_columns(m: &DMatrix<f64>, cols: &[usize]) -> DMatrix<f64> {
 
 /// Refit `spec` on the training data; `base_fit` is the `fit` record to extend.
 pub fn fit_spec(spec: &Spec, train: &Dataset, base_fit: &Value) -> Result<Fitted, RefitError> {
+    fit_spec_on(spec, train, base_fit, None)
+}
+
+/// [`fit_spec`] with the structure `spec` is nested in already fitted on the same data and
+/// fit record (`nested`: [`fit_spec`] of `spec.nested_in`), which a nested refinement then
+/// starts from instead of refitting it ([`fit_nested`]). The candidates nested in the
+/// model's refined structure share that structure as their null, which diagnose fits once
+/// per step (`score_all`): once the model feeds its own output back, that structure is
+/// refined through the loop by multiple shooting, and the unbalanced disk's second step
+/// fitted it four times.
+pub fn fit_spec_on(
+    spec: &Spec,
+    train: &Dataset,
+    base_fit: &Value,
+    nested: Option<&Fitted>,
+) -> Result<Fitted, RefitError> {
     if let Some(a) = &spec.arx {
         return fit_arx(spec, a, train, base_fit);
     }
@@ -357,7 +373,11 @@ pub fn fit_spec(spec: &Spec, train: &Dataset, base_fit: &Value) -> Result<Fitted
         return fit_latent(spec, l, train, base_fit);
     }
     if let Some(ns) = &spec.nested_in {
-        return fit_nested(spec, ns, train, base_fit);
+        let base = match nested {
+            Some(f) => f.clone(),
+            None => fit_spec(ns, train, base_fit)?,
+        };
+        return fit_nested(spec, ns, base, train, base_fit);
     }
     // a structure that reads the model's own output, or its null (diagnose/output.rs)
     if spec.signals.has_feedback() || spec.refined {
@@ -626,7 +646,7 @@ impl Refinement {
 }
 
 /// A structure refined from the refined fit of the structure it is nested in (issue 14; the
-/// scheduling effects' refits). `null` is fitted first ([`fit_spec`]; it is refined: the
+/// scheduling effects' refits). `base` is `null` fitted ([`fit_spec`]; it is refined: the
 /// output-error refinement of [`crate::pipeline::fit_map`]); its model is padded with the
 /// coefficients `spec` adds, all zero: C^(i), D^(i) for i > 1 of a scheduled output equation
 /// y = sum_i mu^(i) (C^(i) x + D^(i) u), A^(i), B^(i), K^(i) of scheduling functions
@@ -656,10 +676,10 @@ impl Refinement {
 pub fn fit_nested(
     spec: &Spec,
     null: &Spec,
+    base: Fitted,
     train: &Dataset,
     base_fit: &Value,
 ) -> Result<Fitted, RefitError> {
-    let base = fit_spec(null, train, base_fit)?;
     let ModelKind::Ss(ss) = &base.model.kind else {
         return Err(RefitError::Unsupported(
             "a nested refinement needs an lpv-ss model".into(),
