@@ -56,6 +56,8 @@ pub(crate) struct Bench<'a> {
     pub larger: Option<&'a Candidate>,
     /// ... and its evaluation among the scored variants.
     pub larger_eval: Option<&'a Eval>,
+    /// The null structures of the step's candidates, fitted once ([`super::NullFit`]).
+    pub nulls: &'a [super::NullFit],
 }
 
 /// One effect's variant and what each rule of a finding found for it (None: the rule was
@@ -257,7 +259,9 @@ impl References {
     fn refined(&self, b: &Bench<'_>) -> Option<&Eval> {
         self.refined
             .get_or_init(|| {
-                let m = output::refined_structure(b.spec, b.scored, b.train, b.fit)?;
+                let key = format!("{:?}", effects::refined_null(b.spec));
+                let fitted = b.nulls.iter().find(|n| n.key == key).map(|n| &n.fitted.model);
+                let m = output::refined_structure(b.spec, b.scored, b.train, b.fit, fitted)?;
                 Eval::new(&m, b.val).ok()
             })
             .as_ref()

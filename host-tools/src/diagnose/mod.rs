@@ -245,7 +245,20 @@ fn mode_name(m: Mode) -> &'static str {
     }
 }
 
-/// Refit and score every candidate, on `threads` worker threads.
+/// A null structure some candidates of a step are compared with instead of the model's own
+/// (the BC-IV fit without its correction, the refined fit of an own-output candidate's
+/// structure), fitted once per step by [`score_all`].
+pub(crate) struct NullFit {
+    /// The structure, as its `Debug` text (the key the candidates' nulls are found by).
+    pub key: String,
+    /// Its fit on the training data.
+    pub fitted: Fitted,
+    /// Its held-out evaluation.
+    pub eval: Eval,
+}
+
+/// Refit and score every candidate, on `threads` worker threads; with the null structures
+/// fitted on the way.
 fn score_all(
     cands: Vec<effects::Candidate>,
     train: &Dataset,
@@ -254,7 +267,7 @@ fn score_all(
     base: &Eval,
     threads: usize,
     progress: Option<Progress<'_>>,
-) -> Vec<Scored> {
+) -> (Vec<Scored>, Vec<NullFit>) {
     let threads = if threads == 0 {
         std::thread::available_parallelism().map_or(1, |n| n.get())
     } else {
@@ -265,19 +278,22 @@ fn score_all(
     // (the BC-IV fit without its correction, the refined fit of an own-output candidate's
     // structure): refit once per distinct structure, not once per candidate
     // (structure, its held-out evaluation)
-    // (structure, its fit, its held-out evaluation); a candidate nested in its null starts
-    // from this fit (effects::score_own)
-    let mut nulls: Vec<(String, Fitted, Eval)> = Vec::new();
+    // a candidate nested in its null starts from the null's fit (effects::score_own)
+    let mut nulls: Vec<NullFit> = Vec::new();
     for c in &cands {
         let Some(ns) = &c.null else { continue };
         let key = format!("{ns:?}");
-        if nulls.iter().any(|(k, ..)| *k == key) {
+        if nulls.iter().any(|n| n.key == key) {
             continue;
         }
         // a null that cannot be refit is left to `effects::score`, which reports why
         let fitted = fit_spec(ns, train, fit).ok();
         if let Some((f, e)) = fitted.and_then(|f| Eval::new(&f.model, val).ok().map(|e| (f, e))) {
-            nulls.push((key, f, e));
+            nulls.push(NullFit {
+                key,
+                fitted: f,
+                eval: e,
+            });
         }
     }
     let jobs: Vec<(usize, effects::Candidate)> = cands.into_iter().enumerate().collect();
@@ -294,11 +310,11 @@ fn score_all(
                 let c = jobs[i].1.clone();
                 let own = c.null.as_ref().and_then(|ns| {
                     let key = format!("{ns:?}");
-                    nulls.iter().find(|(k, ..)| *k == key)
+                    nulls.iter().find(|n| n.key == key)
                 });
                 // the own null's evaluation is given: score against it without refitting it
                 let sc = match own {
-                    Some((_, f, o)) => effects::score_own(c, train, val, fit, o, f),
+                    Some(n) => effects::score_own(c, train, val, fit, &n.eval, &n.fitted),
                     None => effects::score(c, train, val, fit, Some(base)),
                 };
                 let done = {
@@ -312,7 +328,7 @@ fn score_all(
             });
         }
     });
-    results.into_iter().flatten().collect()
+    (results.into_iter().flatten().collect(), nulls)
 }
 
 /// `spec` refit on `train` ([`fit_spec`]) and evaluated on `val` ([`Eval::new`]); None when
@@ -790,7 +806,7 @@ fn diagnose_step(
         }
     }
     let tried = cands.len();
-    let scored = score_all(cands, train, val, fit, base_eval, threads, progress);
+    let (scored, nulls) = score_all(cands, train, val, fit, base_eval, threads, progress);
     // the evaluation of the model's structure with a larger past window, which every
     // finding must also beat (used by the replication's alternatives and the check below)
     let larger_eval = larger.as_ref().and_then(|l| {
@@ -809,6 +825,7 @@ fn diagnose_step(
         base_eval,
         larger: larger.as_ref(),
         larger_eval,
+        nulls: &nulls,
     };
     let (judgements, short) = judge::judge(&bench, notes);
     // a noise model cannot explain the part of the residual an input-driven effect does;

@@ -354,7 +354,8 @@ pub fn refined_mse(model: &ModelFile) -> Option<f64> {
 }
 
 /// The model's structure `spec` refined by output error from the best of its starts: its
-/// own PBSID estimates ([`fit`] of [`super::effects::refined_null`]) and the own-output
+/// own PBSID estimates ([`fit`] of [`super::effects::refined_null`]; `fitted` when the step
+/// has made that fit already, as the own-output candidates' null) and the own-output
 /// variant among `scored` with the lowest training error, linearised ([`linearised_null`]);
 /// the lower training error is kept. The rules that compare a finding with the refined
 /// structure (the scheduling effects, the states check of coloured-noise, order-too-low and
@@ -371,11 +372,15 @@ pub fn refined_structure(
     scored: &[Scored],
     train: &Dataset,
     base_fit: &Value,
+    fitted: Option<&ModelFile>,
 ) -> Option<ModelFile> {
     let null = super::effects::refined_null(spec);
-    let own = super::refit::fit_spec(&null, train, base_fit)
-        .ok()
-        .map(|f| f.model);
+    let own = match fitted {
+        Some(m) => Some(m.clone()),
+        None => super::refit::fit_spec(&null, train, base_fit)
+            .ok()
+            .map(|f| f.model),
+    };
     let deepest = scored
         .iter()
         .filter(|s| s.cand.effect == super::effects::Effect::OutputNonlinearity)
