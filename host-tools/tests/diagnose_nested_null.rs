@@ -49,7 +49,12 @@ fn a_nested_candidate_fitted_from_its_null_s_fit_is_the_same_fit() {
     // the structure fitted on the first half of the record: another start, which the nested
     // fit must be seen to use
     let half = Dataset {
-        cols: case.train.cols.iter().map(|c| c[..c.len() / 2].to_vec()).collect(),
+        cols: case
+            .train
+            .cols
+            .iter()
+            .map(|c| c[..c.len() / 2].to_vec())
+            .collect(),
         ..case.train.clone()
     };
     let other = fit_spec(&null, &half, &model.fit).unwrap();

@@ -260,7 +260,11 @@ impl References {
         self.refined
             .get_or_init(|| {
                 let key = format!("{:?}", effects::refined_null(b.spec));
-                let fitted = b.nulls.iter().find(|n| n.key == key).map(|n| &n.fitted.model);
+                let fitted = b
+                    .nulls
+                    .iter()
+                    .find(|n| n.key == key)
+                    .map(|n| &n.fitted.model);
                 let m = output::refined_structure(b.spec, b.scored, b.train, b.fit, fitted)?;
                 Eval::new(&m, b.val).ok()
             })
