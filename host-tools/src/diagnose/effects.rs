@@ -375,9 +375,8 @@ pub fn score_own(
     null_fit: &Fitted,
 ) -> Scored {
     let t0 = std::time::Instant::now();
-    // the same structure, as score_all keys the nulls
-    let same = |a: Option<&Spec>, b: Option<&Spec>| format!("{a:?}") == format!("{b:?}");
-    let nested = same(cand.spec.nested_in.as_deref(), cand.null.as_ref()).then_some(null_fit);
+    let same = matches!((cand.spec.nested_in.as_deref(), &cand.null), (Some(a), Some(b)) if a.key() == b.key());
+    let nested = same.then_some(null_fit);
     let parts = std::slice::from_ref(val);
     let null = Some(std::slice::from_ref(own_null));
     let mut s = score_parts_inner(cand, train, parts, base_fit, null, true, nested);

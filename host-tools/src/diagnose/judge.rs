@@ -259,7 +259,7 @@ impl References {
     fn refined(&self, b: &Bench<'_>) -> Option<&Eval> {
         self.refined
             .get_or_init(|| {
-                let key = format!("{:?}", effects::refined_null(b.spec));
+                let key = effects::refined_null(b.spec).key();
                 let fitted = b
                     .nulls
                     .iter()

@@ -249,7 +249,7 @@ fn mode_name(m: Mode) -> &'static str {
 /// (the BC-IV fit without its correction, the refined fit of an own-output candidate's
 /// structure), fitted once per step by [`score_all`].
 pub(crate) struct NullFit {
-    /// The structure, as its `Debug` text (the key the candidates' nulls are found by).
+    /// The structure's [`Spec::key`] (by which the candidates' nulls are found).
     pub key: String,
     /// Its fit on the training data.
     pub fitted: Fitted,
@@ -282,7 +282,7 @@ fn score_all(
     let mut nulls: Vec<NullFit> = Vec::new();
     for c in &cands {
         let Some(ns) = &c.null else { continue };
-        let key = format!("{ns:?}");
+        let key = ns.key();
         if nulls.iter().any(|n| n.key == key) {
             continue;
         }
@@ -309,7 +309,7 @@ fn score_all(
                 }
                 let c = jobs[i].1.clone();
                 let own = c.null.as_ref().and_then(|ns| {
-                    let key = format!("{ns:?}");
+                    let key = ns.key();
                     nulls.iter().find(|n| n.key == key)
                 });
                 // the own null's evaluation is given: score against it without refitting it

@@ -180,6 +180,12 @@ fn get_usize(fit: &Value, key: &str) -> Option<usize> {
 }
 
 impl Spec {
+    /// The structure as text, by which a step finds a structure it has fitted already (the
+    /// candidates' shared nulls, `score_all`): two specs with the same key fit the same model.
+    pub fn key(&self) -> String {
+        format!("{self:?}")
+    }
+
     /// Whether [`fit_spec`] fits this structure with the output-error refinement: an
     /// own-output channel, a structure refined as a whole, or one nested in a refined
     /// structure (not the LPV-ARX path).
