@@ -7,10 +7,16 @@
 //! Model: six states, one measured input, |y1| y1 and sin(y1) fed back and a constant
 //! channel (the shape of the disk's fits), and the same with a quasi-LPV weight on y1^2 (two
 //! local models); 8 000 samples (the disk's training record).
+//!
+//! `refine jacobian`: the Jacobian of the refinement's free-run residual over those models'
+//! parameters (every entry of A, B, C and the initial state), exact by forward sensitivities
+//! (`refine::JacobianMethod::Exact`, what the refinement descends with) against forward
+//! differences (one free run per parameter, what it descended with before), in the same run.
 
 use criterion::{black_box, criterion_group, criterion_main, BenchmarkId, Criterion};
 use lpvid_host::lpvss::{LpvSs, Signals};
 use lpvid_host::model::{Factor, FactorFn, Feedback, Loop, OwnFactor};
+use lpvid_host::refine::{free_run_jacobian, JacobianMethod};
 use lpvid_host::simulate::free_run_ss;
 use nalgebra::{DMatrix, DVector};
 
@@ -139,5 +145,28 @@ fn bench(c: &mut Criterion) {
     group.finish();
 }
 
-criterion_group!(benches, bench);
+fn jacobian(c: &mut Criterion) {
+    let mut group = c.benchmark_group("refine jacobian");
+    group.sample_size(10);
+    for (models, scheduled) in [(1, false), (2, true)] {
+        let m = model(models);
+        let (sig, fb) = record(scheduled);
+        let x0 = DVector::zeros(STATES);
+        let params = free_run_jacobian(&m, &x0, &sig, &fb, &[], JacobianMethod::Exact)
+            .expect("a stable run")
+            .ncols();
+        let id = format!("n={STATES} m={models} N={N} parameters={params}");
+        for (name, method) in [
+            ("exact (forward sensitivities)", JacobianMethod::Exact),
+            ("forward differences", JacobianMethod::ForwardDifference),
+        ] {
+            group.bench_function(BenchmarkId::new(name, &id), |b| {
+                b.iter(|| black_box(free_run_jacobian(&m, &x0, &sig, &fb, &[], method)))
+            });
+        }
+    }
+    group.finish();
+}
+
+criterion_group!(benches, bench, jacobian);
 criterion_main!(benches);

@@ -36,6 +36,7 @@ pub mod pbsid;
 pub mod pipeline;
 pub mod record;
 pub mod refine;
+pub mod sensitivity;
 pub mod simulate;
 pub mod statistics;
 pub mod stream;

@@ -157,6 +157,32 @@ impl Factor {
         }
     }
 
+    /// The derivative of [`Factor::apply`] at `v` (the chain rule through the function and
+    /// the power; 0 for `sign`, and for `abs` at 0), for the forward sensitivities of a free
+    /// run through the feedback ([`crate::sensitivity`]). Not finite where the power is below
+    /// 1 and the function is 0 (sqrt|y| at y = 0); the caller decides what to do there.
+    pub fn slope(&self, v: f64) -> f64 {
+        let w = self.omega.unwrap_or(1.0);
+        let (g, dg) = match self.func {
+            None => (v, 1.0),
+            Some(FactorFn::Abs) => (v.abs(), if v == 0.0 { 0.0 } else { v.signum() }),
+            Some(FactorFn::Sign) => return 0.0,
+            Some(FactorFn::Sin) => ((w * v).sin(), w * (w * v).cos()),
+            Some(FactorFn::Cos) => ((w * v).cos(), -w * (w * v).sin()),
+        };
+        let p = self.pow;
+        if p == 1.0 {
+            dg
+        } else if p == 0.0 {
+            0.0
+        } else if p.fract() == 0.0 && p.abs() <= i32::MAX as f64 {
+            p * g.powi(p as i32 - 1) * dg
+        } else {
+            let s = if g == 0.0 { 0.0 } else { g.signum() };
+            p * g.abs().powf(p - 1.0) * s * dg
+        }
+    }
+
     /// The column's values as the factor reads them before the delay: the data as they are,
     /// or their causal low-pass s(k) = a s(k-1) + (1 - a) x(k), s(0) = x(0), with `"smooth": a`.
     pub fn smoothed<'d>(&self, data: &'d [f64]) -> std::borrow::Cow<'d, [f64]> {

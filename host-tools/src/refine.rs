@@ -14,6 +14,7 @@ use nalgebra::{DMatrix, DVector};
 use crate::linalg::{schur_spectral_radius, SmallEig};
 use crate::lpvss::{LpvSs, Signals};
 use crate::model::Feedback;
+use crate::sensitivity::{free_run_sensitivity, Params};
 
 /// Outcome of a refinement.
 #[derive(Debug, Clone)]
@@ -252,6 +253,15 @@ impl<'a> Layout<'a> {
         }
     }
 
+    /// Where the packed parameters sit, for the exact Jacobian ([`crate::sensitivity`]).
+    fn params(&self) -> Params<'_> {
+        Params {
+            d_cols: self.d_cols,
+            zero_d: &self.zero_d,
+            zero_q: &self.zero_q,
+        }
+    }
+
     /// The model and initial state of the packed parameters `v`.
     fn unpack(&self, v: &[f64]) -> (LpvSs, DVector<f64>) {
         let (mut m, x0) = unpack(self.template, v, self.d_cols);
@@ -352,13 +362,7 @@ where
     F: Fn(&[f64]) -> Option<(f64, Vec<f64>)> + Sync,
 {
     let np = theta.len();
-    let column = |p: usize| -> Option<Vec<f64>> {
-        let h = 1e-7 * theta[p].abs().max(1e-3);
-        let mut t2 = theta.to_vec();
-        t2[p] += h;
-        let (_, r2) = cost(&t2)?;
-        Some(r2.iter().zip(r).map(|(a, b)| (a - b) / h).collect())
-    };
+    let column = |p: usize| fd_column(theta, r, cost, p);
     let threads = if r.len() * np >= JACOBIAN_SPLIT_MIN_WORK {
         std::thread::available_parallelism()
             .map_or(1, |v| v.get())
@@ -391,6 +395,103 @@ where
         }
     }
     jac
+}
+
+/// Column `p` of the forward-difference Jacobian of [`jacobian`] (None where the perturbed
+/// run fails).
+fn fd_column<F>(theta: &[f64], r: &[f64], cost: &F, p: usize) -> Option<Vec<f64>>
+where
+    F: Fn(&[f64]) -> Option<(f64, Vec<f64>)>,
+{
+    let h = 1e-7 * theta[p].abs().max(1e-3);
+    let mut t2 = theta.to_vec();
+    t2[p] += h;
+    let (_, r2) = cost(&t2)?;
+    Some(r2.iter().zip(r).map(|(a, b)| (a - b) / h).collect())
+}
+
+/// The exact Jacobian dr/dtheta of the free-run residual r = y - yhat over samples
+/// `start..` of `sig` (the rows before `start` measured, what the feedback reads there),
+/// `rows` x `cols`, with the model's parameters ([`pack`], the initial state last) in the
+/// columns `at..`: minus the forward sensitivities of the run
+/// ([`crate::sensitivity::free_run_sensitivity`]). Non-finite entries (a slope of sqrt|y|
+/// at 0 carried forward) are set to zero. None when the run diverges.
+#[allow(clippy::too_many_arguments)]
+fn exact_columns(
+    m: &LpvSs,
+    x0: &[f64],
+    sig: &Signals,
+    fb: &Feedback,
+    start: usize,
+    params: &Params<'_>,
+    jac: &mut DMatrix<f64>,
+    row0: usize,
+    cols: &[usize],
+) -> Option<()> {
+    let big_n = sig.len();
+    let l = m.l();
+    let mut y = DMatrix::<f64>::zeros(big_n, l);
+    y.rows_mut(0, start).copy_from(&sig.y.rows(0, start));
+    let sens = free_run_sensitivity(m, sig, fb, x0, start..big_n, &mut y, params)?;
+    let np = cols.len();
+    for (i, row) in sens.chunks_exact(np).enumerate() {
+        for (&c, v) in cols.iter().zip(row) {
+            jac[(row0 + i, c)] = if v.is_finite() { -v } else { 0.0 };
+        }
+    }
+    Some(())
+}
+
+/// How [`free_run_jacobian`] computes the Jacobian of the free-run residual.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum JacobianMethod {
+    /// Forward sensitivities through the feedback, one run ([`crate::sensitivity`]): what
+    /// the refinement descends with.
+    Exact,
+    /// Forward differences, one run per parameter (relative step 1e-7): what it descended
+    /// with before, kept as the check of the exact one and its fallback.
+    ForwardDifference,
+}
+
+/// The Jacobian dr/dtheta of the free-run residual r = y - yhat (stacked sample by sample)
+/// of `m` from `x0` through `fb` over the whole of `sig`, theta the refinement's parameters:
+/// every entry of A^(i), B^(i), C^(i), the columns `d_cols` of D^(i), then x0 (the entries the
+/// feedback holds at zero have zero columns). None when the run diverges.
+pub fn free_run_jacobian(
+    m: &LpvSs,
+    x0: &DVector<f64>,
+    sig: &Signals,
+    fb: &Feedback,
+    d_cols: &[usize],
+    method: JacobianMethod,
+) -> Option<DMatrix<f64>> {
+    let layout = Layout::new(m, fb, d_cols);
+    let theta = pack(&layout.unpack(&pack(m, x0, d_cols)).0, x0, d_cols);
+    let cost = |th: &[f64]| -> Option<(f64, Vec<f64>)> {
+        let (m, x0) = layout.unpack(th);
+        Some((0.0, residual(&m, &x0, sig, fb)?))
+    };
+    let (_, r) = cost(&theta)?;
+    match method {
+        JacobianMethod::ForwardDifference => Some(jacobian(&theta, &r, &cost)),
+        JacobianMethod::Exact => {
+            let (m, x0) = layout.unpack(&theta);
+            let mut jac = DMatrix::<f64>::zeros(r.len(), theta.len());
+            let cols: Vec<usize> = (0..theta.len()).collect();
+            exact_columns(
+                &m,
+                x0.as_slice(),
+                sig,
+                fb,
+                0,
+                &layout.params(),
+                &mut jac,
+                0,
+                &cols,
+            )?;
+            Some(jac)
+        }
+    }
 }
 
 /// Step of the finite difference along the velocity that estimates the residual's second
@@ -630,6 +731,36 @@ fn descend(
         };
         Some((r.iter().map(|v| v * v).sum(), r))
     };
+    let params = layout.params();
+    let model_cols: Vec<usize> = (0..n_model).collect();
+    let exact = |th: &[f64], r0: &[f64]| -> Option<DMatrix<f64>> {
+        let (m, x0) = unpack(th);
+        let mut jac = DMatrix::<f64>::zeros(r0.len(), th.len());
+        let fbw;
+        let fb_run = if free.is_empty() {
+            fb
+        } else {
+            fbw = with_frequencies(fb, free, &omegas(th));
+            &fbw
+        };
+        exact_columns(
+            &m,
+            x0.as_slice(),
+            sig,
+            fb_run,
+            0,
+            &params,
+            &mut jac,
+            0,
+            &model_cols,
+        )?;
+        for p in n_model..th.len() {
+            if let Some(c) = fd_column(th, r0, &cost, p) {
+                jac.column_mut(p).copy_from_slice(&c);
+            }
+        }
+        Some(jac)
+    };
     let Some((mut c, mut r)) = cost(&theta) else {
         return Refined {
             model: model.clone(),
@@ -658,8 +789,9 @@ fn descend(
     let mut history = vec![c];
     while it < max_iter {
         it += 1;
-        // forward-difference Jacobian of the residual, its columns on the machine's cores
-        let jac = jacobian(&theta, &r, &cost);
+        // the exact Jacobian of the residual (forward sensitivities, one run); the
+        // frequencies' columns by forward differences
+        let jac = exact(&theta, &r).unwrap_or_else(|| jacobian(&theta, &r, &cost));
         let (jtj, g, diag) = normal_equations(&jac, &r);
         let mut improved = false;
         let mut converged = false;
@@ -915,39 +1047,72 @@ fn shoot(
         }
         Some(r)
     };
+    let params = layout.params();
+    let exact_stretches = |th: &[f64]| -> Option<DMatrix<f64>> {
+        let (m, _) = layout.unpack(&th[..n_model]);
+        let mut jac = DMatrix::<f64>::zeros(rows.iter().sum(), th.len());
+        let mut row0 = 0;
+        for (i, st) in stretches.iter().enumerate() {
+            let at = if i == 0 {
+                n_model - n
+            } else {
+                n_model + (i - 1) * n
+            };
+            let cols: Vec<usize> = (0..n_model - n).chain(at..at + n).collect();
+            exact_columns(
+                &m,
+                &state_of(th, i),
+                &st.sig,
+                &st.fb,
+                st.hist,
+                &params,
+                &mut jac,
+                row0,
+                &cols,
+            )?;
+            row0 += rows[i];
+        }
+        Some(jac)
+    };
     let mut r = residual(&theta)?;
     let mut c: f64 = r.iter().map(|v| v * v).sum();
     let mut mu = 1e-3;
     let mut history = vec![c];
     for _ in 0..max_iter {
-        // the model's columns by the shared forward-difference Jacobian (every stretch moves);
-        // a stretch state's columns move only its own stretch's rows
-        let model_cost = |tm: &[f64]| -> Option<(f64, Vec<f64>)> {
-            let mut th = theta.clone();
-            th[..n_model].copy_from_slice(tm);
-            residual(&th).map(|r| (0.0, r))
-        };
-        let jm = jacobian(&theta[..n_model], &r, &model_cost);
-        let mut jac = DMatrix::<f64>::zeros(r.len(), theta.len());
-        jac.columns_mut(0, n_model).copy_from(&jm);
-        let (m, _) = layout.unpack(&theta[..n_model]);
-        let mut row0 = rows[0];
-        for (i, st) in stretches.iter().enumerate().skip(1) {
-            let x = state_of(&theta, i);
-            for d in 0..n {
-                let h = 1e-7 * x[d].abs().max(1e-3);
-                let mut xp = x.clone();
-                xp[d] += h;
-                let mut rp = Vec::with_capacity(rows[i]);
-                if st.residual(&m, &xp, &mut rp) {
-                    let col = n_model + (i - 1) * n + d;
-                    for (k, v) in rp.iter().enumerate() {
-                        jac[(row0 + k, col)] = (v - r[row0 + k]) / h;
+        // the exact Jacobian, stretch by stretch (forward sensitivities: the model's columns
+        // from every stretch, a stretch state's from its own rows); forward differences where
+        // a stretch's sensitivity run fails
+        let jac = exact_stretches(&theta).unwrap_or_else(|| {
+            // the model's columns by the shared forward-difference Jacobian (every stretch moves);
+            // a stretch state's columns move only its own stretch's rows
+            let model_cost = |tm: &[f64]| -> Option<(f64, Vec<f64>)> {
+                let mut th = theta.clone();
+                th[..n_model].copy_from_slice(tm);
+                residual(&th).map(|r| (0.0, r))
+            };
+            let jm = jacobian(&theta[..n_model], &r, &model_cost);
+            let mut jac = DMatrix::<f64>::zeros(r.len(), theta.len());
+            jac.columns_mut(0, n_model).copy_from(&jm);
+            let (m, _) = layout.unpack(&theta[..n_model]);
+            let mut row0 = rows[0];
+            for (i, st) in stretches.iter().enumerate().skip(1) {
+                let x = state_of(&theta, i);
+                for d in 0..n {
+                    let h = 1e-7 * x[d].abs().max(1e-3);
+                    let mut xp = x.clone();
+                    xp[d] += h;
+                    let mut rp = Vec::with_capacity(rows[i]);
+                    if st.residual(&m, &xp, &mut rp) {
+                        let col = n_model + (i - 1) * n + d;
+                        for (k, v) in rp.iter().enumerate() {
+                            jac[(row0 + k, col)] = (v - r[row0 + k]) / h;
+                        }
                     }
                 }
+                row0 += rows[i];
             }
-            row0 += rows[i];
-        }
+            jac
+        });
         let (jtj, g, diag) = normal_equations(&jac, &r);
         let mut improved = false;
         let mut converged = false;
@@ -1386,5 +1551,134 @@ mod tests {
         assert!(r.mse_after <= floor, "{} vs floor {floor}", r.mse_after);
         assert!(vaf(&r.model) > 99.99);
         assert!(r.iterations < 20, "{}", r.iterations);
+    }
+
+    /// The exact Jacobian (forward sensitivities) equals the forward-difference one to the
+    /// differences' own accuracy on a model with every kind of feedback: a delayed sin(omega
+    /// y1) input channel, a same-sample |y1| y1 channel (its D column held at zero), a
+    /// delayed y1^2 scheduling function with a scheduled output equation, two outputs, a
+    /// product of two own-output factors; over the whole record and over shooting stretches.
+    #[test]
+    fn exact_jacobian_matches_forward_differences() {
+        use crate::model::{Factor, FactorFn, Loop, OwnFactor};
+        let (big_n, n, r, l) = (120, 3, 4, 2);
+        let mut state = 11u64;
+        let mut rnd = || {
+            state ^= state << 13;
+            state ^= state >> 7;
+            state ^= state << 17;
+            (state >> 11) as f64 / (1u64 << 52) as f64 - 1.0
+        };
+        let mat = |rows: usize, cols: usize, scale: f64, rnd: &mut dyn FnMut() -> f64| {
+            DMatrix::from_fn(rows, cols, |_, _| scale * rnd())
+        };
+        let m = LpvSs {
+            a: (0..2)
+                .map(|i| mat(n, n, if i == 0 { 0.3 } else { 0.1 }, &mut rnd))
+                .collect(),
+            b: (0..2).map(|_| mat(n, r, 0.5, &mut rnd)).collect(),
+            k: vec![DMatrix::zeros(n, l); 2],
+            c: (0..2).map(|_| mat(l, n, 1.0, &mut rnd)).collect(),
+            d: (0..2).map(|_| mat(l, r, 0.3, &mut rnd)).collect(),
+        };
+        let sig = Signals {
+            u: mat(big_n, r, 1.0, &mut rnd),
+            y: mat(big_n, l, 1.0, &mut rnd),
+            p: mat(big_n, 1, 0.5, &mut rnd),
+        };
+        let own =
+            |output: usize, delay: usize, func: Option<FactorFn>, pow: f64, omega: Option<f64>| {
+                OwnFactor {
+                    output,
+                    factor: Factor {
+                        pow,
+                        delay,
+                        func,
+                        omega,
+                        ..Factor::col(if output == 0 { "y1" } else { "y2" })
+                    },
+                }
+            };
+        let data: Vec<f64> = (0..big_n).map(|k| 1.0 + 0.1 * sig.u[(k, 0)]).collect();
+        let fb = Feedback {
+            inputs: vec![
+                (
+                    2,
+                    Loop {
+                        data: vec![1.0; big_n],
+                        own: vec![own(0, 1, Some(FactorFn::Sin), 1.0, Some(0.7))],
+                    },
+                ),
+                (
+                    3,
+                    Loop {
+                        data: data.clone(),
+                        own: vec![
+                            own(0, 0, Some(FactorFn::Abs), 1.0, None),
+                            own(0, 0, None, 1.0, None),
+                            own(1, 2, None, 3.0, None),
+                        ],
+                    },
+                ),
+            ],
+            scheduling: vec![(
+                0,
+                Loop {
+                    data: vec![1.0; big_n],
+                    own: vec![own(1, 1, None, 2.0, None)],
+                },
+            )],
+        };
+        let d_cols: Vec<usize> = (0..r).collect();
+        let x0 = DVector::from_fn(n, |i, _| 0.1 * (i as f64 + 1.0));
+        let jac = |method| free_run_jacobian(&m, &x0, &sig, &fb, &d_cols, method).unwrap();
+        let fd = jac(JacobianMethod::ForwardDifference);
+        let exact = jac(JacobianMethod::Exact);
+        let scale = fd.amax();
+        let diff = (&fd - &exact).amax();
+        println!("whole record: largest entry {scale:.3e}, largest difference {diff:.3e}");
+        assert!(diff < 1e-5 * scale, "{diff} vs {scale}");
+        // the held entries' columns are zero in both
+        let np = exact.ncols();
+        assert!(exact.column(np - n - r * l * 2 + 3 * l).amax() == 0.0);
+        // a stretch that starts at sample 40 with the measured outputs before it
+        let layout = Layout::new(&m, &fb, &d_cols);
+        let theta = pack(&m, &x0, &d_cols);
+        let (mu, xu) = layout.unpack(&theta);
+        let cols: Vec<usize> = (0..theta.len()).collect();
+        let hist = fb.max_delay();
+        let st = Stretch {
+            sig: sig.slice(40 - hist, big_n - 40 + hist),
+            fb: fb.rows(40 - hist, big_n - 40 + hist),
+            hist,
+        };
+        let cost_st = |th: &[f64]| -> Option<(f64, Vec<f64>)> {
+            let (m, x0) = layout.unpack(th);
+            let mut r = Vec::new();
+            st.residual(&m, x0.as_slice(), &mut r).then_some((0.0, r))
+        };
+        let (_, rs) = cost_st(&theta).unwrap();
+        let fd_st = jacobian(&theta, &rs, &cost_st);
+        let mut ex_st = DMatrix::<f64>::zeros(rs.len(), theta.len());
+        exact_columns(
+            &mu,
+            xu.as_slice(),
+            &st.sig,
+            &st.fb,
+            hist,
+            &layout.params(),
+            &mut ex_st,
+            0,
+            &cols,
+        )
+        .unwrap();
+        let diff = (&fd_st - &ex_st).amax();
+        println!(
+            "stretch: {} rows, norm {:.6e} (whole record {:.6e}), largest difference {diff:.3e}",
+            rs.len(),
+            fd_st.norm(),
+            fd.norm()
+        );
+        assert!(diff < 1e-5 * fd_st.amax(), "{diff}");
     }
 }
