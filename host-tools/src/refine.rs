@@ -433,10 +433,19 @@ fn exact_columns(
     let mut y = DMatrix::<f64>::zeros(big_n, l);
     y.rows_mut(0, start).copy_from(&sig.y.rows(0, start));
     let sens = free_run_sensitivity(m, sig, fb, x0, start..big_n, &mut y, params)?;
+    // transposed into jac's columns a tile of rows at a time (the tile's rows of `sens` stay
+    // in cache while each column is written contiguously)
     let np = cols.len();
-    for (i, row) in sens.chunks_exact(np).enumerate() {
-        for (&c, v) in cols.iter().zip(row) {
-            jac[(row0 + i, c)] = if v.is_finite() { -v } else { 0.0 };
+    let rows = sens.len() / np.max(1);
+    const TILE: usize = 64;
+    for i0 in (0..rows).step_by(TILE) {
+        let i1 = (i0 + TILE).min(rows);
+        for (ci, &c) in cols.iter().enumerate() {
+            let mut col = jac.column_mut(c);
+            for i in i0..i1 {
+                let v = sens[i * np + ci];
+                col[row0 + i] = if v.is_finite() { -v } else { 0.0 };
+            }
         }
     }
     Some(())

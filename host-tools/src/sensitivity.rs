@@ -100,6 +100,24 @@ fn axpy(y: &mut [f64], a: f64, x: &[f64]) {
     }
 }
 
+/// `out` = M X for X (`k` rows of `np`) and M (`rows` x `k`), all row-major: faer's product
+/// of the transposes, X^T M^T, whose column-major layouts are these row-major ones (SIMD
+/// chosen at run time; the crate is built for plain x86-64).
+fn times(out: &mut [f64], x: &[f64], m: &[f64], np: usize, k: usize, rows: usize) {
+    if k == 0 || np == 0 {
+        out.iter_mut().for_each(|v| *v = 0.0);
+        return;
+    }
+    faer::linalg::matmul::matmul(
+        faer::MatMut::from_column_major_slice_mut(out, np, rows),
+        faer::Accum::Replace,
+        faer::MatRef::from_column_major_slice(x, np, k),
+        faer::MatRef::from_column_major_slice(m, k, rows),
+        1.0,
+        faer::Par::Seq,
+    );
+}
+
 /// The derivative of `lp`'s value at sample k with respect to the parameters into `dv`
 /// (zeroed first): the factors that read outputs `start <= j < avail` (the rows of `jac`,
 /// `np` values per output row) by the product rule. Rows before `start` are measured (no
@@ -233,11 +251,10 @@ pub fn free_run_sensitivity(
             }
         }
         let row0 = (k - start) * l * np;
+        // Y_k = C(mu) X_k (the rows of Y_k and X_k are their transposes' columns)
+        times(&mut jac[row0..row0 + l * np], &sx, &cmu, np, n, l);
         for a in 0..l {
             let yr = &mut jac[row0 + a * np..row0 + (a + 1) * np];
-            for b in 0..n {
-                axpy(yr, cmu[a * n + b], &sx[b * np..(b + 1) * np]);
-            }
             for ((i, _), dv) in in_loops.iter().zip(du.chunks_exact(np)) {
                 axpy(yr, dmat[a * r + i], dv);
             }
@@ -291,12 +308,10 @@ pub fn free_run_sensitivity(
                 }
             }
         }
-        sxn.iter_mut().for_each(|v| *v = 0.0);
+        // X_{k+1} = A(mu) X_k + ...
+        times(&mut sxn, &sx, &amu, np, n, n);
         for a in 0..n {
             let xr = &mut sxn[a * np..(a + 1) * np];
-            for b in 0..n {
-                axpy(xr, amu[a * n + b], &sx[b * np..(b + 1) * np]);
-            }
             for ((i, _), dv) in in_loops.iter().zip(du.chunks_exact(np)) {
                 axpy(xr, bmu[a * r + i], dv);
             }
