@@ -7,7 +7,10 @@
 //! subspace initialisation. K is left as identified (it does not enter the free run); with
 //! `--observer hinf` the gains are then designed for the refined model
 //! ([`crate::observer::hinf_observer_refined`]), which is what lets Table 1 of the sparse
-//! paper be reached on B2 at p = 5 (docs/bench-observer.md).
+//! paper be reached on B2 at p = 5 (docs/bench-observer.md). The Jacobian of each step is
+//! the exact one of the free run through the feedback ([`crate::sensitivity`]; forward
+//! differences, [`JacobianMethod::ForwardDifference`], only for refined frequencies and as
+//! the fallback).
 
 use nalgebra::{DMatrix, DVector};
 
