@@ -114,14 +114,24 @@ pub struct LpvSs {
 
 /// Sum_i mu_i M_i (a single matrix is taken as parameter-independent).
 pub fn scheduled(mats: &[DMatrix<f64>], mu: &DVector<f64>) -> DMatrix<f64> {
-    if mats.len() == 1 {
-        return mats[0].clone();
-    }
     let mut out = DMatrix::zeros(mats[0].nrows(), mats[0].ncols());
-    for (m, w) in mats.iter().zip(mu.iter()) {
-        out += m * *w;
-    }
+    scheduled_into(mats, mu.as_slice(), &mut out);
     out
+}
+
+/// [`scheduled`] into `out` (the shape of each M_i), without allocating: the loops that
+/// form it at every sample ([`crate::sensitivity`]).
+pub fn scheduled_into(mats: &[DMatrix<f64>], mu: &[f64], out: &mut DMatrix<f64>) {
+    if mats.len() == 1 {
+        out.copy_from(&mats[0]);
+        return;
+    }
+    out.fill(0.0);
+    for (m, w) in mats.iter().zip(mu) {
+        for (o, v) in out.iter_mut().zip(m.iter()) {
+            *o += v * w;
+        }
+    }
 }
 
 impl LpvSs {

@@ -478,7 +478,9 @@ pub fn free_run_jacobian(
     method: JacobianMethod,
 ) -> Option<DMatrix<f64>> {
     let layout = Layout::new(m, fb, d_cols);
-    let theta = pack(&layout.unpack(&pack(m, x0, d_cols)).0, x0, d_cols);
+    // the model with the entries the feedback holds at zero set to zero, as a descent has it
+    let (held, _) = layout.unpack(&pack(m, x0, d_cols));
+    let theta = pack(&held, x0, d_cols);
     let cost = |th: &[f64]| -> Option<(f64, Vec<f64>)> {
         let (m, x0) = layout.unpack(th);
         Some((0.0, residual(&m, &x0, sig, fb)?))
@@ -487,11 +489,10 @@ pub fn free_run_jacobian(
     match method {
         JacobianMethod::ForwardDifference => Some(jacobian(&theta, &r, &cost)),
         JacobianMethod::Exact => {
-            let (m, x0) = layout.unpack(&theta);
             let mut jac = DMatrix::<f64>::zeros(r.len(), theta.len());
             let cols: Vec<usize> = (0..theta.len()).collect();
             exact_columns(
-                &m,
+                &held,
                 x0.as_slice(),
                 sig,
                 fb,

@@ -20,7 +20,7 @@
 
 use nalgebra::DMatrix;
 
-use crate::lpvss::{LpvSs, Signals};
+use crate::lpvss::{scheduled_into, LpvSs, Signals};
 use crate::model::{Feedback, Loop};
 
 /// Where a model's entries sit among the parameters, in the order of the refinement's
@@ -100,10 +100,11 @@ fn axpy(y: &mut [f64], a: f64, x: &[f64]) {
     }
 }
 
-/// `out` = M X for X (`k` rows of `np`) and M (`rows` x `k`), all row-major: faer's product
-/// of the transposes, X^T M^T, whose column-major layouts are these row-major ones (SIMD
-/// chosen at run time; the crate is built for plain x86-64).
-fn times(out: &mut [f64], x: &[f64], m: &[f64], np: usize, k: usize, rows: usize) {
+/// `out` = M X for X (`k` rows of `np` values, row-major, as `out`) and M (`rows` x `k`):
+/// faer's product of the transposes, X^T M^T, whose column-major layouts are the row-major
+/// ones of X and `out` (SIMD chosen at run time; the crate is built for plain x86-64).
+fn times(out: &mut [f64], x: &[f64], m: &DMatrix<f64>, np: usize) {
+    let (rows, k) = m.shape();
     if k == 0 || np == 0 {
         out.iter_mut().for_each(|v| *v = 0.0);
         return;
@@ -112,7 +113,7 @@ fn times(out: &mut [f64], x: &[f64], m: &[f64], np: usize, k: usize, rows: usize
         faer::MatMut::from_column_major_slice_mut(out, np, rows),
         faer::Accum::Replace,
         faer::MatRef::from_column_major_slice(x, np, k),
-        faer::MatRef::from_column_major_slice(m, k, rows),
+        faer::MatRef::from_column_major_slice(m.as_slice(), rows, k).transpose(),
         1.0,
         faer::Par::Seq,
     );
@@ -201,10 +202,11 @@ pub fn free_run_sensitivity(
     let mut uk = vec![0.0; r];
     let mut yk = vec![0.0; l];
     let mut mu = vec![1.0; mm];
-    let mut amu = vec![0.0; n * n];
-    let mut bmu = vec![0.0; n * r];
-    let mut cmu = vec![0.0; l * n];
-    let mut dmat = vec![0.0; l * r];
+    // A(mu), B(mu), C(mu), D(mu) of the sample
+    let mut amu = DMatrix::zeros(n, n);
+    let mut bmu = DMatrix::zeros(n, r);
+    let mut cmu = DMatrix::zeros(l, n);
+    let mut dmat = DMatrix::zeros(l, r);
     // the loops' derivatives at sample k with the outputs before `avail` known
     let loop_slopes =
         |k: usize, avail: usize, y: &DMatrix<f64>, jac: &[f64], du: &mut [f64], dmu: &mut [f64]| {
@@ -234,29 +236,15 @@ pub fn free_run_sensitivity(
         }
         let w_c = |i: usize| if mc > 1 { mu[i] } else { 1.0 };
         let w_d = |i: usize| if md > 1 { mu[i] } else { 1.0 };
-        cmu.iter_mut().for_each(|v| *v = 0.0);
-        for (i, c) in m.c.iter().enumerate() {
-            for a in 0..l {
-                for b in 0..n {
-                    cmu[a * n + b] += w_c(i) * c[(a, b)];
-                }
-            }
-        }
-        dmat.iter_mut().for_each(|v| *v = 0.0);
-        for (i, d) in m.d.iter().enumerate() {
-            for a in 0..l {
-                for j in 0..r {
-                    dmat[a * r + j] += w_d(i) * d[(a, j)];
-                }
-            }
-        }
+        scheduled_into(&m.c, &mu, &mut cmu);
+        scheduled_into(&m.d, &mu, &mut dmat);
         let row0 = (k - start) * l * np;
-        // Y_k = C(mu) X_k (the rows of Y_k and X_k are their transposes' columns)
-        times(&mut jac[row0..row0 + l * np], &sx, &cmu, np, n, l);
+        // Y_k = C(mu) X_k
+        times(&mut jac[row0..row0 + l * np], &sx, &cmu, np);
         for a in 0..l {
             let yr = &mut jac[row0 + a * np..row0 + (a + 1) * np];
             for ((i, _), dv) in in_loops.iter().zip(du.chunks_exact(np)) {
-                axpy(yr, dmat[a * r + i], dv);
+                axpy(yr, dmat[(a, *i)], dv);
             }
             for ((q, _), dv) in sc_loops.iter().zip(dmu.chunks_exact(np)) {
                 // d y / d mu_{q+1} = C^(q+1) x + D^(q+1) u where the output equation is scheduled
@@ -295,25 +283,14 @@ pub fn free_run_sensitivity(
             loop_slopes(k, k + 1, y, &jac, &mut du, &mut dmu);
         }
         step.state_into(&mu, &x, &uk, None, &mut xn);
-        amu.iter_mut().for_each(|v| *v = 0.0);
-        bmu.iter_mut().for_each(|v| *v = 0.0);
-        for (i, (ai, bi)) in m.a.iter().zip(&m.b).enumerate() {
-            let w = mu[i];
-            for a in 0..n {
-                for b in 0..n {
-                    amu[a * n + b] += w * ai[(a, b)];
-                }
-                for j in 0..r {
-                    bmu[a * r + j] += w * bi[(a, j)];
-                }
-            }
-        }
+        scheduled_into(&m.a, &mu, &mut amu);
+        scheduled_into(&m.b, &mu, &mut bmu);
         // X_{k+1} = A(mu) X_k + ...
-        times(&mut sxn, &sx, &amu, np, n, n);
+        times(&mut sxn, &sx, &amu, np);
         for a in 0..n {
             let xr = &mut sxn[a * np..(a + 1) * np];
             for ((i, _), dv) in in_loops.iter().zip(du.chunks_exact(np)) {
-                axpy(xr, bmu[a * r + i], dv);
+                axpy(xr, bmu[(a, *i)], dv);
             }
             for ((q, _), dv) in sc_loops.iter().zip(dmu.chunks_exact(np)) {
                 let g = (0..n).map(|b| m.a[q + 1][(a, b)] * x[b]).sum::<f64>()
