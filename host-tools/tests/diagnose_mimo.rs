@@ -8,7 +8,8 @@
 mod diagnose_support;
 
 use diagnose_support::family::{
-    assert_refined_not_coloured, blocked_finding, diagnose_one_shaped, number_after, run_one_shaped,
+    assert_refined_not_coloured, blocked_finding, diagnose_one_auto, diagnose_one_shaped,
+    number_after, run_one_shaped,
 };
 use lpvid_host::diagnose::plants::Shape;
 
@@ -85,4 +86,31 @@ fn an_own_output_channel_that_only_escapes_a_local_minimum_is_not_a_finding() {
         let own = number_after(why, "against it the sinusoids explain ");
         assert!(own < 5.0, "{own}");
     }
+}
+
+/// 2x1 plant 233002 (order 1, pole 0.52, white inputs, past window 5, output noise 6.4 %
+/// coloured, strength 0.25), the user's order left to `--order auto` (one state). One more
+/// state for the noise dynamics explains 24.4 % of the held-out one-step error. On the first
+/// training half `--order auto` reads two states, so the null structure refit there with the
+/// automatic order was that variant itself: it explained exactly 0.0 % of its error and the
+/// effect did not replicate. Refit at the order its fit on the whole record took (one state,
+/// `replicate::at_order`), the first half explains 24.1 % and coloured-noise is named.
+#[test]
+fn a_noise_state_replicates_against_the_null_at_the_order_it_was_fitted() {
+    let (model, out) =
+        diagnose_one_auto("coloured-noise", 233002, 1000, Shape::parse("2x1").unwrap());
+    let lpvid_host::model::ModelKind::Ss(ss) = &model.kind else {
+        panic!("an lpv-ss model");
+    };
+    assert_eq!(ss.n(), 1, "--order auto read {} states", ss.n());
+    let f = &out.report.findings[0];
+    println!(
+        "{} ({}) {:.3} {:?}",
+        f.effect, f.detail, f.explained, f.replication
+    );
+    assert_eq!(f.effect, "coloured-noise");
+    assert!(f.significant, "{:?}", f.blocked_by);
+    let rep = f.replication.as_ref().expect("replicated on the halves");
+    assert!(rep.iter().all(|&e| e > 0.15), "{rep:?}");
+    assert_eq!(out.report.applied.len(), 1);
 }

@@ -40,6 +40,9 @@ type Versus = (f64, f64);
 pub(crate) struct Bench<'a> {
     /// The model's structure.
     pub spec: &'a Spec,
+    /// The order its refit on the whole training record took (what a replication refits it
+    /// at when the order is left to `--order auto`, [`replicate::at_order`]).
+    pub order: usize,
     /// The training data the refits are fitted on.
     pub train: &'a Dataset,
     /// The held-out data they are scored on.
@@ -178,9 +181,10 @@ fn cross_validate(
     notes: &mut Vec<String>,
 ) {
     let folds = replicate::cv_folds(b.train, b.val);
+    let null = replicate::at_order(b.spec, b.order);
     let nulls: Option<Vec<Eval>> = folds
         .iter()
-        .map(|(fit_on, score_on)| fit_eval(b.spec, fit_on, score_on, b.fit))
+        .map(|(fit_on, score_on)| fit_eval(&null, fit_on, score_on, b.fit))
         .collect();
     let Some(nulls) = nulls.filter(|_| !folds.is_empty()) else {
         notes.push("the null structure cannot be refit on the cross-validation folds: the short held-out record's test is not pooled with them".into());
@@ -188,7 +192,7 @@ fn cross_validate(
     };
     for j in js.iter_mut().filter(|j| could(j)) {
         let s = &b.scored[j.index];
-        let f = replicate::cross_fold(&replicate::as_fitted(s), &folds, &nulls, b.fit);
+        let f = replicate::cross_fold(&replicate::as_fitted(s, b.order), &folds, &nulls, b.fit);
         j.pooled = Some(replicate::pooled_p(&s.ratios, &f));
         j.replication = Some(f.iter().map(|x| (x.explained, x.p_value)).collect());
     }
@@ -212,15 +216,16 @@ fn replicate_on_halves<'b>(
     js: &mut [Judgement],
     notes: &mut Vec<String>,
 ) -> Option<Halves<'b>> {
-    let Some(halves) = Halves::new(b.spec, b.train, b.val, b.fit) else {
+    let Some(halves) = Halves::new(replicate::at_order(b.spec, b.order), b.train, b.val, b.fit)
+    else {
         notes.push("the null structure cannot be refit on half of the training data: findings are not replicated on independent halves".into());
         return None;
     };
     for j in js.iter_mut().filter(|j| j.full_data) {
         let best = j.index;
-        let mut r = halves.replicate(&replicate::as_fitted(&b.scored[best]));
+        let mut r = halves.replicate(&replicate::as_fitted(&b.scored[best], b.order));
         if !replicate::replicated(&r.versus) {
-            let cand = |i: usize| replicate::as_fitted(&b.scored[i]);
+            let cand = |i: usize| replicate::as_fitted(&b.scored[i], b.order);
             let alts = replicate::alternatives(b.scored, best, b.tried, b.base_eval, b.larger_eval);
             // on the whole held-out record first: the best variant, then its alternatives
             let mut found = None;
@@ -302,7 +307,7 @@ fn second_chance(
     let first = j.swapped_from.as_ref().map_or(j.index, |s| s.0);
     let alts = replicate::alternatives(b.scored, first, b.tried, b.base_eval, b.larger_eval);
     for i in alts.into_iter().filter(|&i| i != j.index) {
-        let r = halves.replicate(&replicate::as_fitted(&b.scored[i]));
+        let r = halves.replicate(&replicate::as_fitted(&b.scored[i], b.order));
         if !replicate::replicated(&r.versus) {
             continue;
         }

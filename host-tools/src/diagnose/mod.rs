@@ -817,6 +817,7 @@ fn diagnose_step(
     });
     let bench = judge::Bench {
         spec,
+        order: base.order,
         train,
         val,
         fit,

@@ -270,8 +270,8 @@ pub struct Halves<'a> {
     pub sets: [Dataset; 2],
     /// The null structure refit on each half.
     nulls: [HalfNull; 2],
-    /// The model's structure.
-    spec: &'a Spec,
+    /// The model's structure, at the order its fit on the whole record took ([`at_order`]).
+    spec: Cow<'a, Spec>,
     /// The held-out record.
     val: &'a Dataset,
     /// The model's fit settings.
@@ -281,25 +281,48 @@ pub struct Halves<'a> {
     wider: [OnceCell<Option<HalfNull>>; 2],
 }
 
-/// The candidate a replication refits for the scored variant `s`: its own, but an
-/// own-output variant fitted with the automatic order is refit at the order its full-data fit
-/// took ([`super::output::fit`] chooses it between PBSID's reading and the model's own order).
-/// The replication asks whether the structure found on the whole record is found again on
-/// each half; a half whose singular values read another order fits another structure: on the
-/// second training half of the physical pendulum 225013 PBSID read one state for the loop
+/// `spec` at `order`, the order its fit on the whole training record took, when it leaves
+/// the order to `--order auto` (an LPV-ARX structure keeps its own orders). A replication
+/// asks whether the structure found on the whole record, its order included, is found again
+/// on each half: a half whose singular values read another order fits another structure.
+/// On the physical pendulum 225013 PBSID read one state for the loop on the second half
 /// (training MSE 0.30, the full record's two states 0.0034 there), and a sin channel that
 /// explained 99.5 % of the held-out error on the whole record and the first half explained
-/// 6.6 % on it (docs/bench-diagnose.md, thirty-seventh session).
-pub fn as_fitted(s: &Scored) -> Cow<'_, Candidate> {
-    let order = s.fitted.as_ref().map(|f| f.order);
-    match (s.cand.spec.opts.order, order) {
-        (crate::pbsid::Order::Auto, Some(n)) if n >= 1 && s.cand.spec.signals.has_feedback() => {
-            let mut c = s.cand.clone();
-            c.spec.opts.order = crate::pbsid::Order::Fixed(n);
-            Cow::Owned(c)
+/// 6.6 % on it (docs/bench-diagnose.md, thirty-seventh session). The null structure likewise:
+/// on the 2x1 family's coloured-noise plant 233002 (user model of one state by `--order
+/// auto`) the first half read two states, so the null refit there was the variant "one more
+/// state for the noise dynamics" itself, which then explained exactly 0.0 % of its error and
+/// the effect did not replicate (24.4 % held out, 24.1 % on the other half).
+pub fn at_order(spec: &Spec, order: usize) -> Cow<'_, Spec> {
+    match spec.opts.order {
+        crate::pbsid::Order::Auto if order >= 1 && spec.arx.is_none() => {
+            let mut s = spec.clone();
+            s.opts.order = crate::pbsid::Order::Fixed(order);
+            Cow::Owned(s)
         }
-        _ => Cow::Borrowed(&s.cand),
+        _ => Cow::Borrowed(spec),
     }
+}
+
+/// The candidate a replication refits for the scored variant `s`: its structure at the order
+/// its full-data fit took, and its own null structure, if any, at `null_order` (the order
+/// the model's structure took on the whole record, which its nulls, the same structure
+/// refined or as an LPV-ARX model, share) ([`at_order`]).
+pub fn as_fitted(s: &Scored, null_order: usize) -> Cow<'_, Candidate> {
+    let spec = match s.fitted.as_ref() {
+        Some(f) => at_order(&s.cand.spec, f.order),
+        None => Cow::Borrowed(&s.cand.spec),
+    };
+    let null = s.cand.null.as_ref().map(|n| at_order(n, null_order));
+    let null_changed = matches!(null, Some(Cow::Owned(_)));
+    if matches!(spec, Cow::Borrowed(_)) && !null_changed {
+        return Cow::Borrowed(&s.cand);
+    }
+    Cow::Owned(Candidate {
+        spec: spec.into_owned(),
+        null: null.map(Cow::into_owned),
+        ..s.cand.clone()
+    })
 }
 
 /// The null structure refit on one training half, and its evaluation on the whole held-out
@@ -367,13 +390,13 @@ impl<'a> Halves<'a> {
     /// The halves of `train` and the structure `spec` refit on each, scored on `val`; None
     /// when the structure cannot be refit on a half.
     pub fn new(
-        spec: &'a Spec,
+        spec: Cow<'a, Spec>,
         train: &Dataset,
         val: &'a Dataset,
         fit: &'a serde_json::Value,
     ) -> Option<Halves<'a>> {
         let sets = halves(train);
-        let [n0, n1] = [0, 1].map(|i| HalfNull::fit(spec, &sets[i], val, fit));
+        let [n0, n1] = [0, 1].map(|i| HalfNull::fit(&spec, &sets[i], val, fit));
         Some(Halves {
             sets,
             nulls: [n0?, n1?],
@@ -429,7 +452,7 @@ impl<'a> Halves<'a> {
     fn spans(&self, cand: &Candidate) -> Option<Spans> {
         let (cols, feedback) = match cand.effect {
             Effect::ScheduledOutput | Effect::SchedulingNonlinearity => {
-                (operating_columns(self.spec), false)
+                (operating_columns(&self.spec), false)
             }
             Effect::OutputNonlinearity => (own_output_columns(&cand.spec), true),
             _ => return None,
@@ -474,7 +497,7 @@ impl<'a> Halves<'a> {
                     .filter(|w| w.error.is_none())
                 {
                     let past = |sp: &Spec| sp.opts.past;
-                    let null_past = cand.null.as_ref().map_or(past(self.spec), past);
+                    let null_past = cand.null.as_ref().map_or(past(&self.spec), past);
                     let pasts = if null_past == past(&cand.spec) {
                         format!("past window {} (was {})", null_past + 1, null_past)
                     } else {
@@ -529,7 +552,7 @@ impl<'a> Halves<'a> {
             None => Some(
                 self.wider[i]
                     .get_or_init(|| {
-                        let spec = with_past(self.spec, self.spec.opts.past + 1, h.len())?;
+                        let spec = with_past(&self.spec, self.spec.opts.past + 1, h.len())?;
                         HalfNull::fit(&spec, h, self.val, self.fit)
                     })
                     .as_ref()?

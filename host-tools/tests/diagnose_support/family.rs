@@ -412,6 +412,34 @@ pub fn diagnose_one_shaped(
     (model, out)
 }
 
+/// [`diagnose_one_shaped`] with the user's order left to `--order auto` (what
+/// `LPVID_FAMILY_ORDER=auto` does in the family run).
+pub fn diagnose_one_auto(
+    effect: &str,
+    seed: u64,
+    n: usize,
+    shape: Shape,
+) -> (ModelFile, lpvid_host::diagnose::Outcome) {
+    let mut case = family_case_shaped(effect, seed, n, shape).unwrap();
+    leave_order_to_auto(&mut case);
+    let model = user_model(&case).unwrap();
+    let opts = Options {
+        fix: true,
+        max_steps: 1,
+        threads: 2,
+    };
+    let out = diagnose(&model, &case.train, &case.val, &opts).unwrap();
+    (model, out)
+}
+
+/// The user's `lpvid pbsid` options with `--order auto` in place of the plant's order (a user
+/// who does not know it).
+fn leave_order_to_auto(case: &mut FamilyCase) {
+    if let Some(i) = case.pbsid_args.iter().position(|a| a == "--order") {
+        case.pbsid_args[i + 1] = "auto".into();
+    }
+}
+
 /// Draw, identify and diagnose the plant of `effect` with `seed` (records of `n` samples).
 pub fn run_one(effect: &str, seed: u64, n: usize) -> FamilyRun {
     run_one_with(effect, seed, n, None)
@@ -461,9 +489,7 @@ pub fn run_one_profiled(
     // LPVID_FAMILY_ORDER=auto: the user leaves the order to `--order auto` (a user who does
     // not know it), instead of the plant's order; order-too-low keeps its order too small
     if std::env::var("LPVID_FAMILY_ORDER").as_deref() == Ok("auto") && effect != "order-too-low" {
-        if let Some(i) = case.pbsid_args.iter().position(|a| a == "--order") {
-            case.pbsid_args[i + 1] = "auto".into();
-        }
+        leave_order_to_auto(&mut case);
     }
     // LPVID_FAMILY_DUMP=DIR: the case's records and the user's `lpvid pbsid` options as
     // files, so a miss can be traced through the command line (`lpvid pbsid`, `diagnose`)
