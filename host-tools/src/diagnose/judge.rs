@@ -41,7 +41,7 @@ pub(crate) struct Bench<'a> {
     /// The model's structure.
     pub spec: &'a Spec,
     /// The order its refit on the whole training record took (what a replication refits it
-    /// at when the order is left to `--order auto`, [`replicate::at_order`]).
+    /// at when the order is left to `--order auto`, [`replicate::null_at_order`]).
     pub order: usize,
     /// The training data the refits are fitted on.
     pub train: &'a Dataset,
@@ -181,7 +181,7 @@ fn cross_validate(
     notes: &mut Vec<String>,
 ) {
     let folds = replicate::cv_folds(b.train, b.val);
-    let null = replicate::at_order(b.spec, b.order);
+    let null = replicate::null_at_order(b.spec, b.order);
     let nulls: Option<Vec<Eval>> = folds
         .iter()
         .map(|(fit_on, score_on)| fit_eval(&null, fit_on, score_on, b.fit))
@@ -216,8 +216,12 @@ fn replicate_on_halves<'b>(
     js: &mut [Judgement],
     notes: &mut Vec<String>,
 ) -> Option<Halves<'b>> {
-    let Some(halves) = Halves::new(replicate::at_order(b.spec, b.order), b.train, b.val, b.fit)
-    else {
+    let Some(halves) = Halves::new(
+        replicate::null_at_order(b.spec, b.order),
+        b.train,
+        b.val,
+        b.fit,
+    ) else {
         notes.push("the null structure cannot be refit on half of the training data: findings are not replicated on independent halves".into());
         return None;
     };

@@ -270,7 +270,7 @@ pub struct Halves<'a> {
     pub sets: [Dataset; 2],
     /// The null structure refit on each half.
     nulls: [HalfNull; 2],
-    /// The model's structure, at the order its fit on the whole record took ([`at_order`]).
+    /// The model's structure, as [`null_at_order`] refits it.
     spec: Cow<'a, Spec>,
     /// The held-out record.
     val: &'a Dataset,
@@ -288,11 +288,7 @@ pub struct Halves<'a> {
 /// On the physical pendulum 225013 PBSID read one state for the loop on the second half
 /// (training MSE 0.30, the full record's two states 0.0034 there), and a sin channel that
 /// explained 99.5 % of the held-out error on the whole record and the first half explained
-/// 6.6 % on it (docs/bench-diagnose.md, thirty-seventh session). The null structure likewise:
-/// on the 2x1 family's coloured-noise plant 233002 (user model of one state by `--order
-/// auto`) the first half read two states, so the null refit there was the variant "one more
-/// state for the noise dynamics" itself, which then explained exactly 0.0 % of its error and
-/// the effect did not replicate (24.4 % held out, 24.1 % on the other half).
+/// 6.6 % on it (docs/bench-diagnose.md, thirty-seventh session).
 pub fn at_order(spec: &Spec, order: usize) -> Cow<'_, Spec> {
     match spec.opts.order {
         crate::pbsid::Order::Auto if order >= 1 && spec.arx.is_none() => {
@@ -304,16 +300,37 @@ pub fn at_order(spec: &Spec, order: usize) -> Cow<'_, Spec> {
     }
 }
 
+/// A null structure as a replication refits it: at the order its fit on the whole record
+/// took ([`at_order`]) unless it reads the model's own output, whose fit
+/// ([`super::output::fit`]) chooses the order on the data it is given. On the 2x1 family's
+/// coloured-noise plant 233002 (user model of one state by `--order auto`) the first half
+/// read two states, so the null refit there was the variant "one more state for the noise
+/// dynamics" itself, which explained exactly 0.0 % of its error, and the effect did not
+/// replicate (24.4 % held out, 24.1 % on the other half; at one state the half explains
+/// 24.1 %). On the unbalanced disk's third step (a model feeding |y1| y1 back, six states)
+/// the own-output null held at six states on the first half gave no finite comparison for
+/// three own-output variants (explained exactly 0), where its own order choice replicated
+/// the sin channel the benchmark's diagnosis applies (docs/bench-diagnose.md,
+/// forty-first session).
+pub fn null_at_order(spec: &Spec, order: usize) -> Cow<'_, Spec> {
+    if spec.signals.has_feedback() {
+        Cow::Borrowed(spec)
+    } else {
+        at_order(spec, order)
+    }
+}
+
 /// The candidate a replication refits for the scored variant `s`: its structure at the order
-/// its full-data fit took, and its own null structure, if any, at `null_order` (the order
-/// the model's structure took on the whole record, which its nulls, the same structure
-/// refined or as an LPV-ARX model, share) ([`at_order`]).
+/// its full-data fit took ([`at_order`]), and its own null structure, if any, as
+/// [`null_at_order`] says with `null_order`, the order the model's structure took on the
+/// whole record (its nulls are that structure refined, or fitted with the variant's own
+/// settings).
 pub fn as_fitted(s: &Scored, null_order: usize) -> Cow<'_, Candidate> {
     let spec = match s.fitted.as_ref() {
         Some(f) => at_order(&s.cand.spec, f.order),
         None => Cow::Borrowed(&s.cand.spec),
     };
-    let null = s.cand.null.as_ref().map(|n| at_order(n, null_order));
+    let null = s.cand.null.as_ref().map(|n| null_at_order(n, null_order));
     let null_changed = matches!(null, Some(Cow::Owned(_)));
     if matches!(spec, Cow::Borrowed(_)) && !null_changed {
         return Cow::Borrowed(&s.cand);
