@@ -393,6 +393,9 @@ pub fn diagnose_with_progress(
     opts: &Options,
     progress: Option<Progress<'_>>,
 ) -> Result<Outcome, DiagnoseError> {
+    // the structure is refit many times on the same record with only the order, the
+    // refinement or the noise model changed: their regression is made once
+    let _memo = crate::pbsid::memo::Scope::open();
     let mut notes = Vec::new();
     let spec = Spec::from_model(model, &mut notes)?;
     // scored as the candidates are: from an initial state estimated on the first held-out

@@ -30,6 +30,7 @@
 pub mod bpdn;
 pub mod dual;
 pub mod error;
+pub mod memo;
 pub mod order;
 pub mod primal;
 pub mod realize;
@@ -123,6 +124,7 @@ pub fn fit_with_validation(
 /// (15) and the state candidates of (16) for all orders (or the sparse path's states and
 /// order). [`StateCandidates::realize`] finishes a model at one order, so that comparing
 /// orders (`--order auto`'s free-run check) costs one regression, not one per order.
+#[derive(Clone)]
 pub struct StateCandidates {
     scaling: Scaling,
     sv: Vec<f64>,
@@ -141,7 +143,18 @@ pub struct StateCandidates {
 
 /// The regression and state candidates of [`fit_with_validation`] (all but the order choice
 /// and the realization).
+/// Inside a [`memo::Scope`] the candidates of the same signals and regression settings are
+/// computed once.
 pub fn state_candidates(
+    sig: &Signals,
+    val: Option<&Signals>,
+    opts: &PbsidOptions,
+) -> Result<StateCandidates, FitError> {
+    memo::state_candidates(sig, val, opts, || compute_state_candidates(sig, val, opts))
+}
+
+/// [`state_candidates`] computed.
+fn compute_state_candidates(
     sig: &Signals,
     val: Option<&Signals>,
     opts: &PbsidOptions,

@@ -284,6 +284,7 @@ fn filtered(
 }
 
 /// Outcome of the regularised regression.
+#[derive(Clone)]
 pub(crate) struct RegressionInfo {
     /// (lambda, largest Gram eigenvalue), None for the minimum-norm solution.
     pub(crate) lambda: Option<(f64, f64)>,
