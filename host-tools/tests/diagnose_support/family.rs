@@ -401,15 +401,7 @@ pub fn diagnose_one_shaped(
     n: usize,
     shape: Shape,
 ) -> (ModelFile, lpvid_host::diagnose::Outcome) {
-    let case = family_case_shaped(effect, seed, n, shape).unwrap();
-    let model = user_model(&case).unwrap();
-    let opts = Options {
-        fix: true,
-        max_steps: 1,
-        threads: 2,
-    };
-    let out = diagnose(&model, &case.train, &case.val, &opts).unwrap();
-    (model, out)
+    diagnose_case(family_case_shaped(effect, seed, n, shape).unwrap())
 }
 
 /// [`diagnose_one_shaped`] with the user's order left to `--order auto` (what
@@ -422,6 +414,11 @@ pub fn diagnose_one_auto(
 ) -> (ModelFile, lpvid_host::diagnose::Outcome) {
     let mut case = family_case_shaped(effect, seed, n, shape).unwrap();
     leave_order_to_auto(&mut case);
+    diagnose_case(case)
+}
+
+/// The user's model of a drawn `case` and its diagnosis with `--fix` (one step).
+fn diagnose_case(case: FamilyCase) -> (ModelFile, lpvid_host::diagnose::Outcome) {
     let model = user_model(&case).unwrap();
     let opts = Options {
         fix: true,
