@@ -331,8 +331,10 @@ pub fn as_fitted(s: &Scored, null_order: usize) -> Cow<'_, Candidate> {
         None => Cow::Borrowed(&s.cand.spec),
     };
     let null = s.cand.null.as_ref().map(|n| null_at_order(n, null_order));
-    let null_changed = matches!(null, Some(Cow::Owned(_)));
-    if matches!(spec, Cow::Borrowed(_)) && !null_changed {
+    if matches!(
+        (&spec, &null),
+        (Cow::Borrowed(_), None | Some(Cow::Borrowed(_)))
+    ) {
         return Cow::Borrowed(&s.cand);
     }
     Cow::Owned(Candidate {

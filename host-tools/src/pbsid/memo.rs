@@ -35,7 +35,9 @@ struct Key {
 }
 
 impl Key {
-    fn new(sig: &Signals, val: Option<&Signals>, opts: &PbsidOptions) -> Option<Key> {
+    /// The key of `sig`, `val` with the settings' text `opts` ([`settings_text`]); None
+    /// when the record is too long to keep ([`MAX_VALUES`]).
+    fn new(sig: &Signals, val: Option<&Signals>, opts: String) -> Option<Key> {
         let values = |s: &Signals| s.len() * (s.u.ncols() + s.y.ncols() + s.p.ncols());
         if values(sig) + val.map_or(0, values) > MAX_VALUES {
             return None;
@@ -43,7 +45,7 @@ impl Key {
         Some(Key {
             sig: sig.clone(),
             val: val.cloned(),
-            opts: settings_text(opts),
+            opts,
         })
     }
 
@@ -119,9 +121,14 @@ impl Table {
         };
         // computed outside the lock: other threads' fits go on meanwhile
         let out = compute()?;
-        if let Some(key) = Key::new(sig, val, opts) {
+        if let Some(key) = Key::new(sig, val, text) {
             let mut m = self.lock();
-            if m.scopes > 0 && !m.entries.iter().any(|(k, _)| k.matches(sig, val, &text)) {
+            if m.scopes > 0
+                && !m
+                    .entries
+                    .iter()
+                    .any(|(k, _)| k.matches(sig, val, &key.opts))
+            {
                 if m.entries.len() >= CAPACITY {
                     m.entries.remove(0);
                 }
