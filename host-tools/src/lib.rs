@@ -37,6 +37,7 @@ pub mod pipeline;
 pub mod record;
 pub mod refine;
 pub mod sensitivity;
+pub mod significance;
 pub mod simulate;
 pub mod statistics;
 pub mod stream;

@@ -598,7 +598,7 @@ fn a_bounded_own_output_channel_is_refined_with_a_stable_linear_part() {
 }
 
 /// The noise threshold's test is the exact Wilcoxon signed-rank test of the held-out batch
-/// log ratios (`stats::signed_rank_p`, helper h24wil). On the physical pendulum 8014 (found by
+/// log ratios (`significance::signed_rank_p`, helper h24wil). On the physical pendulum 8014 (found by
 /// `LPVID_SEEDS=8004,1 LPVID_PLANT=Pendulum`; its angle stays within 1.2 rad) the Lur'e y1^3
 /// channel improved 19 of 20 held-out batches (the one worse batch has the second smallest
 /// |log ratio|) and explained 20.7 % of the refined null's error, but a few batches with a

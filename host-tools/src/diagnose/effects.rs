@@ -29,7 +29,7 @@
 //! statistically significant: the held-out record is cut into 20 contiguous batches, the log
 //! ratio of the null refit's to the variant's squared error is formed per batch, and the 20
 //! ratios are tested by the exact one-sided Wilcoxon signed-rank test
-//! ([`super::stats::signed_rank_p`]; batches longer than the correlation time keep the test
+//! ([`crate::significance::signed_rank_p`]; batches longer than the correlation time keep the test
 //! valid for the strongly coloured free-run residual, where an i.i.d. test would not, and the
 //! log ratio makes it scale-free; the ranks keep a few batches with a large ratio from
 //! inflating the spread, which made the t test of their mean miss pendulums whose true model
@@ -51,10 +51,10 @@ use super::catalogue::{regressors, MAX_KERNEL_WINDOWS, MAX_REGRESSORS};
 use super::memory::{judged, Basis};
 use super::refit::{fit_spec, Fitted, Spec};
 use super::residual::{ResidualReport, ALPHA};
-use super::stats::{batch_count, batch_log_ratios, mean_t, signed_rank_p};
 use crate::data::{DataError, Dataset};
 use crate::model::{ModelFile, ModelKind, SignalMap};
 use crate::pbsid::Order;
+use crate::significance::compare;
 use crate::simulate::{simulate_signals, Mode};
 
 /// Smallest fraction of the held-out error a finding must explain (see the module docs).
@@ -311,7 +311,7 @@ pub struct Scored {
     /// Fraction of the null refit's held-out error it removes.
     pub explained: f64,
     /// Batch-means t of the per-batch log ratios (shown beside the p-value; the test is the
-    /// signed-rank one, [`Comparison`]).
+    /// signed-rank one, [`crate::significance::Comparison`]).
     pub t: f64,
     /// One-sided p-value of the signed-rank test of the per-batch log ratios.
     pub p_value: f64,
@@ -526,43 +526,6 @@ fn score_parts_inner(
     }
 }
 
-/// A variant's held-out per-sample loss against a null's (same mode, same rows): the
-/// module's noise threshold test, in one place for the null refit ([`score`]), a variant's
-/// own null and the user's structure ([`versus`]).
-#[derive(Debug, Clone)]
-pub struct Comparison {
-    /// 1 - sum(loss1) / sum(loss0): the fraction of the null's error removed.
-    pub explained: f64,
-    /// Batch-means t of the per-batch log ratios of the null's to the variant's error (shown
-    /// beside the p-value; the test is the signed-rank one).
-    pub t: f64,
-    /// One-sided p-value of the exact Wilcoxon signed-rank test of the per-batch log ratios
-    /// ([`signed_rank_p`]).
-    pub p_value: f64,
-    /// The per-batch log ratios (empty when the record is too short for one batch).
-    pub ratios: Vec<f64>,
-}
-
-/// [`Comparison`] of finite losses `loss1` (variant) and `loss0` (null) of equal length.
-pub fn compare(loss0: &[f64], loss1: &[f64]) -> Comparison {
-    let d: f64 = loss0.iter().zip(loss1).map(|(a, b)| a - b).sum();
-    let m0 = loss0.iter().sum::<f64>();
-    let explained = if m0 > 0.0 { d / m0 } else { 0.0 };
-    let ratios = batch_log_ratios(loss0, loss1, batch_count(loss0.len()));
-    // no batch, no test: p = 1 (never significant)
-    let (t, p_value) = if ratios.is_empty() {
-        (0.0, 1.0)
-    } else {
-        (mean_t(&ratios).0, signed_rank_p(&ratios))
-    };
-    Comparison {
-        explained,
-        t,
-        p_value,
-        ratios,
-    }
-}
-
 /// The structure `spec` fitted with the output-error refinement: the null of the scheduling
 /// effects' refined variants ([`super::refit::fit_nested`]) and of the output-nonlinearity
 /// candidates, and the larger past window refined for an own-output finding.
@@ -719,7 +682,7 @@ pub struct Finding {
     /// long record; on a short one the statistic of the pooled t test).
     pub t: f64,
     /// One-sided p-value of the full-data test: the signed-rank test of the held-out batch log
-    /// ratios ([`Comparison`]), or on a short record the pooled t test
+    /// ratios ([`crate::significance::Comparison`]), or on a short record the pooled t test
     /// ([`super::replicate::pooled_p`]).
     pub p_value: f64,
     /// Above the noise threshold.

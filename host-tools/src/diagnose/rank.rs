@@ -9,8 +9,9 @@ use super::effects::{self, held_out_mse, parameter_count, Finding, Scored};
 use super::encompass;
 use super::fit_eval;
 use super::residual::ALPHA;
-use super::stats::{batch_count, batch_log_ratios, mean_t, t_sf};
+use super::stats::t_sf;
 use crate::data::Dataset;
+use crate::significance::{batch_count, batch_log_ratios, mean_t};
 use crate::simulate::Mode;
 
 /// Rank the findings of one step: those above the threshold first, by the explained
@@ -232,7 +233,7 @@ fn order_by_own_error(order: &mut [usize], scored: &[Scored]) {
 /// earns its extra coefficients with the evidence a finding needs: its held-out batches
 /// beat the simpler finding's head to head: a one-sided t test of the batch log ratios
 /// ([`batch_log_ratios`], at ALPHA / `tried`; a finding against its null is judged by the
-/// signed-rank test of the same ratios, [`super::effects::compare`]). Otherwise the finding with
+/// signed-rank test of the same ratios, [`crate::significance::compare`]). Otherwise the finding with
 /// fewer free coefficients ([`parameter_count`]) that the richer one does not beat comes
 /// first (the one explaining most of them), and the rule is applied again from it. At equal
 /// counts a structure linear in the data is the simpler of the two when the other feeds a

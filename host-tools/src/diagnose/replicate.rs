@@ -36,9 +36,10 @@ use super::effects::{
 };
 use super::memory::{judged, Basis};
 use super::refit::Spec;
-use super::stats::{mean_t, t_sf};
+use super::stats::t_sf;
 use crate::data::Dataset;
 use crate::model::{Factor, ModelFile};
+use crate::significance::mean_t;
 use std::borrow::Cow;
 use std::cell::OnceCell;
 
@@ -129,7 +130,7 @@ pub fn halves(ds: &Dataset) -> [Dataset; 2] {
 }
 
 /// A stretch of held-out samples outside a half's operating range shorter than this (one
-/// batch of the test, [`super::stats::batch_count`]) does not cut the record
+/// batch of the test, [`crate::significance::batch_count`]) does not cut the record
 /// ([`support_parts`]): a brief excursion tests no extrapolation worth the restart.
 pub const SUPPORT_EXCURSION: usize = 25;
 
@@ -591,7 +592,7 @@ pub fn replicated(r: &[(f64, f64)]) -> bool {
     r.iter().all(|(e, p)| *e > 0.0 && *p < REPLICATION_ALPHA)
 }
 
-/// A held-out record with fewer scored batches than this (of 25 samples, [`super::stats::batch_count`]) is
+/// A held-out record with fewer scored batches than this (of 25 samples, [`crate::significance::batch_count`]) is
 /// short: its batch test alone cannot pass the Bonferroni level (205 held-out samples of
 /// the cascaded tanks: 6 batches, the signed-rank test's smallest p-value 2^-6 = 1.6e-2), so the evidence of the two training halves is added ([`cross_fold`]).
 pub const SHORT_BATCHES: usize = 20;

@@ -16,11 +16,9 @@
 use nalgebra::DMatrix;
 use serde::Serialize;
 
-use super::stats::{
-    acf, batch_count, batch_means_t, ccf, chi2_sf, mean, normal_quantile, periodogram, refine_peak,
-    t_sf,
-};
+use super::stats::{acf, ccf, chi2_sf, mean, normal_quantile, periodogram, refine_peak, t_sf};
 use crate::data::Dataset;
+use crate::significance::{batch_count, batch_means_t};
 
 /// Family-wise level of every test in this module.
 pub const ALPHA: f64 = 0.01;
