@@ -306,25 +306,42 @@ pub(crate) fn pick_centre(
 /// initial state estimated on the first samples (a quarter of the record at most, 50 at
 /// most), scored on the rest; infinite when the run diverges.
 pub fn held_out_error(model: &ModelFile, ds: &Dataset) -> Result<f64, Error> {
+    Ok(held_out_score(model, ds)?.error)
+}
+
+/// [`held_out_error`] with the per-sample losses it is the mean of (each scored sample's
+/// squared errors over var y, averaged over outputs): what the order check of `--order auto`
+/// compares two orders on ([`pbsid::free_run_order`]).
+pub fn held_out_score(model: &ModelFile, ds: &Dataset) -> Result<pbsid::FreeRunScore, Error> {
     let samples = (ds.len() / 4).min(X0_SAMPLES);
     let r = run(model, ds, Mode::FreeRun, X0::Estimate { samples })?;
     let (n, l) = (r.y.nrows(), r.y.ncols());
     if n <= r.skip + 1 {
-        return Ok(f64::INFINITY);
+        return Ok(pbsid::FreeRunScore {
+            error: f64::INFINITY,
+            losses: Vec::new(),
+        });
     }
     let mut total = 0.0;
+    let mut losses = vec![0.0; n - r.skip];
     for j in 0..l {
         let y: Vec<f64> = (r.skip..n).map(|k| r.y[(k, j)]).collect();
         let m = y.iter().sum::<f64>() / y.len() as f64;
         let var = y.iter().map(|v| (v - m) * (v - m)).sum::<f64>() / y.len() as f64;
-        let mse = (r.skip..n)
+        let sq: Vec<f64> = (r.skip..n)
             .map(|k| (r.y[(k, j)] - r.yhat[(k, j)]).powi(2))
-            .sum::<f64>()
-            / y.len() as f64;
+            .collect();
+        let mse = sq.iter().sum::<f64>() / y.len() as f64;
         total += mse / var.max(1e-300);
+        for (s, e) in losses.iter_mut().zip(&sq) {
+            *s += e / var.max(1e-300) / l as f64;
+        }
     }
     let e = total / l as f64;
-    Ok(if e.is_finite() { e } else { f64::INFINITY })
+    Ok(pbsid::FreeRunScore {
+        error: if e.is_finite() { e } else { f64::INFINITY },
+        losses,
+    })
 }
 
 /// What the free-run check of `--order auto` scores on: the validation file, else the last
@@ -410,7 +427,7 @@ fn check_order(
     // realization from these candidates (same regression, same states, same least
     // squares): it is scored as it is instead of realized again
     let own_is_n0 = head.is_none() && !opts.refine;
-    let err = |o: usize| -> Option<f64> {
+    let score = |o: usize| -> Option<pbsid::FreeRunScore> {
         let model = if own_is_n0 && o == n0 {
             fit.model.clone()
         } else {
@@ -421,41 +438,56 @@ fn check_order(
             signals: map.clone(),
             fit: Value::Null,
         };
-        held_out_error(&mf, &hold).ok()
+        held_out_score(&mf, &hold).ok()
     };
     // the check scores n0, n0 + 1 and n0 + 2 whatever it finds (a far better n0 + 1 has its
     // own + 1 checked next): with a core to spare n0 + 1 is scored on a second thread while
     // n0 and n0 + 2 are scored here (each order's score is the same computation either way)
-    let ahead: Vec<(usize, Option<f64>)> = if n0 < max && crate::linalg::spare_core() {
-        std::thread::scope(|sc| {
-            let next = sc.spawn(|| err(n0 + 1));
-            let mut v = vec![(n0, err(n0))];
-            if n0 + 2 <= max {
-                v.push((n0 + 2, err(n0 + 2)));
-            }
-            v.push((
-                n0 + 1,
-                next.join().unwrap_or_else(|e| std::panic::resume_unwind(e)),
-            ));
-            v
-        })
-    } else {
-        Vec::new()
-    };
-    let (n, seen) = pbsid::free_run_order(n0, max, |o| match ahead.iter().find(|a| a.0 == o) {
-        Some(&(_, e)) => e,
-        None => err(o),
+    let ahead: Vec<(usize, Option<pbsid::FreeRunScore>)> =
+        if n0 < max && crate::linalg::spare_core() {
+            std::thread::scope(|sc| {
+                let next = sc.spawn(|| score(n0 + 1));
+                let mut v = vec![(n0, score(n0))];
+                if n0 + 2 <= max {
+                    v.push((n0 + 2, score(n0 + 2)));
+                }
+                v.push((
+                    n0 + 1,
+                    next.join().unwrap_or_else(|e| std::panic::resume_unwind(e)),
+                ));
+                v
+            })
+        } else {
+            Vec::new()
+        };
+    let check = pbsid::free_run_order(n0, max, |o| match ahead.iter().find(|a| a.0 == o) {
+        Some((_, s)) => s.clone(),
+        None => score(o),
     });
+    let (n, seen) = (check.order, &check.errors);
     let vafs: Vec<Value> = seen
         .iter()
         .map(|(o, e)| json!({"order": o, "vaf": 100.0 * (1.0 - e).max(0.0)}))
+        .collect();
+    let error_of = |o: usize| seen.iter().find(|s| s.0 == o).map_or(f64::NAN, |s| s.1);
+    let compared: Vec<Value> = check
+        .compared
+        .iter()
+        .map(|&(o, larger, p)| {
+            json!({
+                "order": o, "larger": larger,
+                "error_ratio": Some(error_of(o) / error_of(larger)).filter(|r| r.is_finite()),
+                "p_value": p,
+            })
+        })
         .collect();
     let record = json!({
         "gap_order": n0,
         "order": n,
         "held_out": held,
         "free_run": vafs,
-        "rule": format!("an order is replaced by order + 1 or + 2 when its held-out free-run error is more than {} times theirs, or more than {} times theirs and {} above (normalised MSE)", pbsid::FAR_WORSE_FACTOR, pbsid::FAR_WORSE_RATIO, pbsid::FAR_WORSE_GAP),
+        "compared": compared,
+        "rule": format!("an order is replaced by order + 1 or + 2 when its held-out free-run error is more than {} times theirs, or more than {} times theirs and either {} above (normalised MSE) or significantly above (paired signed-rank test of per-batch log ratios, p < {})", pbsid::FAR_WORSE_FACTOR, pbsid::FAR_WORSE_RATIO, pbsid::FAR_WORSE_GAP, pbsid::ORDER_ALPHA),
     });
     if n == n0 {
         return Ok((fit, opts.clone(), Some(record)));
