@@ -496,6 +496,21 @@ fn score_parts_inner(
         let e = evals.into_iter().nth(i);
         return Scored::failed(cand, Some(fitted), e, why);
     }
+    // a null whose run is not finite leaves no error to explain: the comparison failed (it
+    // is not a variant that "explains 0 %", which is what the test made of a NaN sum)
+    if null
+        .iter()
+        .any(|n| n.loss(mode).iter().any(|v| !v.is_finite()))
+    {
+        let why = format!(
+            "the null structure's {} on the validation data is not finite: nothing to compare the variant with",
+            match mode {
+                Mode::FreeRun => "free run",
+                Mode::Predictor => "one-step prediction",
+            }
+        );
+        return Scored::failed(cand, Some(fitted), evals.into_iter().next(), why);
+    }
     // the symmetric memory rule corrects refits of the model's own structure; a variant
     // with its own null structure is compared with it as scored (super::memory::judged)
     let (mut basis, mut loss0, mut loss1) = (Basis::EstimatedStart, vec![], vec![]);
@@ -1038,5 +1053,55 @@ mod tests {
         abs.func = Some(crate::model::FactorFn::Abs);
         map.scheduling.push(vec![abs]);
         assert_eq!(own_output_signals(&map), 2);
+    }
+
+    /// A null whose held-out free run is not finite leaves nothing to compare with: the
+    /// variant's score is a failed comparison that says so, not "explains 0 %" at p = 1 (what
+    /// the test made of a NaN sum).
+    #[test]
+    fn a_null_that_is_not_finite_fails_the_comparison() {
+        let case = crate::diagnose::plants::family_case("clean", 5, 600).unwrap();
+        let train = crate::pipeline::DataFile {
+            path: "train.csv".into(),
+            data: case.train.clone(),
+            bytes: vec![],
+        };
+        let mut settings = crate::pipeline::PbsidSettings::new(5);
+        settings.fit.order = Order::Fixed(case.planted.order);
+        let model = crate::pipeline::identify(&train, None, &settings)
+            .unwrap()
+            .model;
+        let spec = Spec::from_model(&model, &mut vec![]).unwrap();
+        let mut larger = spec.clone();
+        larger.opts.order = Order::Fixed(case.planted.order + 1);
+        let cand = Candidate {
+            effect: Effect::OrderTooLow,
+            detail: "one more state".into(),
+            spec: larger,
+            null: None,
+        };
+        let null = Eval::new(&model, &case.val).unwrap();
+        let fine = score(
+            cand.clone(),
+            &case.train,
+            &case.val,
+            &model.fit,
+            Some(&null),
+        );
+        assert!(
+            fine.error.is_none() && fine.explained.is_finite(),
+            "{:?}",
+            fine.error
+        );
+        let mut broken = null.clone();
+        let k = broken.skip + 10;
+        broken.yhat_free[(k, 0)] = f64::NAN;
+        let s = score(cand, &case.train, &case.val, &model.fit, Some(&broken));
+        let why = s.error.expect("a failed comparison");
+        assert!(
+            why.contains("null structure") && why.contains("not finite"),
+            "{why}"
+        );
+        assert_eq!((s.explained, s.p_value), (f64::NEG_INFINITY, 1.0));
     }
 }
