@@ -65,6 +65,11 @@ pub struct Result {
 }
 
 pub fn run_bench(dir: &Path, b: &Bench) -> Result {
+    run_bench_at(dir, b, 10)
+}
+
+/// [`run_bench`] with the user's model identified at past window `past` (order auto).
+pub fn run_bench_at(dir: &Path, b: &Bench, past: usize) -> Result {
     let t0 = std::time::Instant::now();
     let ds = Dataset::read_csv(&dir.join(b.file)).unwrap();
     let tr = segment(&ds, b.train.0, b.train.1, "");
@@ -82,7 +87,7 @@ pub fn run_bench(dir: &Path, b: &Bench) -> Result {
             "--train",
             tf.to_str().unwrap(),
             "--past",
-            "10",
+            &past.to_string(),
             "--out",
             mf.to_str().unwrap(),
         ],
