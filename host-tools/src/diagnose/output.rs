@@ -125,7 +125,7 @@ pub fn candidates(ctx: &Context<'_>) -> (Vec<(String, Spec)>, Option<String>) {
     }
     let present = |p: &[Factor]| map.inputs.iter().chain(&map.scheduling).any(|q| q == p);
     // each Lur'e channel also with a constant channel, where the model has none and its
-    // residual has a mean ([`offset_twins`])
+    // residual has a mean ([`has_mean`])
     let offset_twins = !map.inputs.iter().any(Vec::is_empty) && has_mean(ctx.train_residual);
     let mut out = Vec::new();
     for c in &outs {
