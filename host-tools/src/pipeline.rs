@@ -327,14 +327,14 @@ pub fn held_out_score(model: &ModelFile, ds: &Dataset) -> Result<pbsid::FreeRunS
     for j in 0..l {
         let y: Vec<f64> = (r.skip..n).map(|k| r.y[(k, j)]).collect();
         let m = y.iter().sum::<f64>() / y.len() as f64;
-        let var = y.iter().map(|v| (v - m) * (v - m)).sum::<f64>() / y.len() as f64;
+        let var = (y.iter().map(|v| (v - m) * (v - m)).sum::<f64>() / y.len() as f64).max(1e-300);
         let sq: Vec<f64> = (r.skip..n)
             .map(|k| (r.y[(k, j)] - r.yhat[(k, j)]).powi(2))
             .collect();
         let mse = sq.iter().sum::<f64>() / y.len() as f64;
-        total += mse / var.max(1e-300);
+        total += mse / var;
         for (s, e) in losses.iter_mut().zip(&sq) {
-            *s += e / var.max(1e-300) / l as f64;
+            *s += e / var / l as f64;
         }
     }
     let e = total / l as f64;
