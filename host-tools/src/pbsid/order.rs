@@ -79,15 +79,11 @@ pub(crate) fn choose_order(
 }
 
 /// An order whose held-out free-run error is more than this factor above a larger order's
-/// (and [`FAR_WORSE_GAP`] above it in absolute terms) is "far worse" ([`far_worse`]).
+/// (and [`FAR_WORSE_GAP`] above it in absolute terms, or significantly above it at level
+/// [`ORDER_ALPHA`]) is "far worse" ([`far_worse`]).
 pub const FAR_WORSE_RATIO: f64 = 1.25;
 
-/// ... and more than this much (normalised MSE, i.e. 5 VAF points) above it. A paired test
-/// in its place (the larger order 1.25 times lower and significantly lower by
-/// [`paired_p`] at 1 %) gave orders nearer the truth on drawn plants, but on the Silverbox
-/// multisine it kept four states for the linear model (held-out VAF 98.7 % against 97.9 % at
-/// two), whose spare states then held the output's offset, and diagnose no longer reached the
-/// cubic spring (docs/bench-diagnose.md, "The order check judged by a paired test: tried").
+/// ... and more than this much (normalised MSE, i.e. 5 VAF points) above it.
 pub const FAR_WORSE_GAP: f64 = 0.05;
 
 /// An order whose held-out free-run error is more than this factor above a larger order's is
@@ -97,6 +93,20 @@ pub const FAR_WORSE_GAP: f64 = 0.05;
 /// `--order auto` kept orders 2 and 1, and `diagnose` then named order-too-low at 5.8x and
 /// 2.3x (docs/bench-diagnose.md, "The order check at any level of fit").
 pub const FAR_WORSE_FACTOR: f64 = 2.0;
+
+/// Level of the paired test that makes an error [`FAR_WORSE_RATIO`] times a larger order's
+/// far worse without the absolute gap: the one-sided signed-rank test of the per-batch log
+/// ratios of the two orders' held-out losses ([`crate::significance::compare`], the test
+/// diagnose judges its findings with, at diagnose's family-wise level of 1 %). The absolute
+/// gap alone let a fit near 99.9 % VAF stop a state short: on the clean plants 233101 (1x1)
+/// and 233202 (2x2) the larger order's held-out error was 1.64 and 1.47 times lower but only
+/// 0.0004 and 0.0045 below, and diagnose then named order-too-low (docs/bench-diagnose.md,
+/// "The order check judged by a paired test"). On the Silverbox multisine it keeps four
+/// states at past 10 (the linear model is truly better so: its spare states approximate the
+/// cubic); taken out once when diagnose could not apply the cubic from four states, restored
+/// since a Lur'e channel is also tried with its constant (0.378 mV on the arrow from four
+/// states, 0.369 mV from two; "The paired order check restored").
+pub const ORDER_ALPHA: f64 = 0.01;
 
 /// An order's free-run score on held-out data: the normalised error (mean over outputs of
 /// MSE / var y; infinite when the run diverges) and the per-sample losses it is the mean of
@@ -110,21 +120,21 @@ pub struct FreeRunScore {
 }
 
 /// Is the normalised held-out error `e_n` far worse than `e_larger` (a larger order's)?
-/// Either [`FAR_WORSE_FACTOR`] times above it, or [`FAR_WORSE_RATIO`] times and
-/// [`FAR_WORSE_GAP`] above it.
-pub fn far_worse(e_n: f64, e_larger: f64) -> bool {
+/// Either [`FAR_WORSE_FACTOR`] times above it, or [`FAR_WORSE_RATIO`] times above it and
+/// either [`FAR_WORSE_GAP`] above it or significantly above it (`p_value`, the paired test of
+/// [`paired_p`], below [`ORDER_ALPHA`]).
+pub fn far_worse(e_n: f64, e_larger: f64, p_value: f64) -> bool {
     let e_n = if e_n.is_finite() { e_n } else { f64::INFINITY };
     e_larger.is_finite()
         && (e_n > FAR_WORSE_FACTOR * e_larger
-            || (e_n > FAR_WORSE_RATIO * e_larger && e_n - e_larger > FAR_WORSE_GAP))
+            || (e_n > FAR_WORSE_RATIO * e_larger
+                && (e_n - e_larger > FAR_WORSE_GAP || p_value < ORDER_ALPHA)))
 }
 
 /// One-sided p-value that the larger order's held-out losses are lower than order n's: the
-/// signed-rank test of their per-batch log ratios ([`crate::significance::compare`], the test
-/// diagnose judges its findings with), on the samples both scored (the last ones when one run
-/// scored fewer). 1 when either has no finite losses to compare. The check records it beside
-/// each comparison (a larger order that is significantly better but within the margins is
-/// what diagnose may then name order-too-low); it does not decide.
+/// signed-rank test of their per-batch log ratios ([`crate::significance::compare`]), on the
+/// samples both scored (the last ones when one run scored fewer). 1 when either has no finite
+/// losses to compare.
 pub fn paired_p(n: &FreeRunScore, larger: &FreeRunScore) -> f64 {
     let k = n.losses.len().min(larger.losses.len());
     let (a, b) = (
@@ -144,7 +154,7 @@ pub struct OrderCheck {
     pub order: usize,
     /// The held-out error of every order scored, ascending by order.
     pub errors: Vec<(usize, f64)>,
-    /// The comparisons made: (order, larger order, p-value of [`paired_p`], for the record).
+    /// The comparisons made: (order, larger order, p-value of [`paired_p`]).
     pub compared: Vec<(usize, usize, f64)>,
 }
 
@@ -181,7 +191,7 @@ pub fn free_run_order(
                 if let Some(s) = get(o, &mut seen) {
                     let p = paired_p(&s_n, &s);
                     compared.push((n, o, p));
-                    if far_worse(s_n.error, s.error) {
+                    if far_worse(s_n.error, s.error, p) {
                         best = Some((o, s));
                     }
                 }
@@ -217,16 +227,18 @@ mod tests {
     }
 
     #[test]
-    fn far_worse_needs_ratio_and_gap() {
+    fn far_worse_needs_ratio_and_gap_or_significance() {
         // Silverbox n = 1 vs 2 (VAF 12.5 vs 90.4), cascaded tanks n = 2 vs 3 (48.7 vs 62.4)
-        assert!(far_worse(0.875, 0.096));
-        assert!(far_worse(0.513, 0.376));
-        assert!(!far_worse(0.012, 0.008)); // ratio 1.5 but 0.4 VAF points
-        assert!(far_worse(0.012, 0.005)); // ratio 2.4 at any level
-        assert!(!far_worse(0.010, 0.005)); // exactly twice is not more than twice
-        assert!(!far_worse(0.30, 0.26)); // 4 points, ratio 1.15
-        assert!(far_worse(f64::INFINITY, 0.5)); // a diverging order
-        assert!(!far_worse(0.5, f64::NAN));
+        assert!(far_worse(0.875, 0.096, 1.0));
+        assert!(far_worse(0.513, 0.376, 1.0));
+        assert!(!far_worse(0.012, 0.008, 1.0)); // ratio 1.5 but 0.4 VAF points, not significant
+        assert!(far_worse(0.012, 0.008, 1e-3)); // ... significant
+        assert!(!far_worse(0.012, 0.010, 1e-6)); // significant but ratio 1.2
+        assert!(far_worse(0.012, 0.005, 1.0)); // ratio 2.4 at any level
+        assert!(!far_worse(0.010, 0.005, 1.0)); // exactly twice is not more than twice
+        assert!(!far_worse(0.30, 0.26, 1e-6)); // 4 points, ratio 1.15
+        assert!(far_worse(f64::INFINITY, 0.5, 1.0)); // a diverging order
+        assert!(!far_worse(0.5, f64::NAN, 0.0));
     }
 
     #[test]
@@ -271,11 +283,23 @@ mod tests {
             (none.order, none.errors.len(), none.compared.len()),
             (3, 0, 0)
         );
-        // near 99.9 % VAF 1.6 times lower on every batch: recorded as significant, not
-        // far worse by the margins
+        // near 99.9 % VAF: 1.6 times lower on every batch moves; 1.33 times lower on the
+        // mean but only on the first quarter (three batches of twelve) does not
         let near = [0.0, 0.0011, 0.0007, 0.0007];
         let c = free_run_order(1, 3, |o| near.get(o).map(|&e| flat(e, 300)));
+        assert_eq!(c.order, 2);
+        let c = free_run_order(1, 3, |o| {
+            near.get(o).map(|&e| {
+                let mut s = flat(e, 300);
+                if o > 1 {
+                    s.losses = (0..300)
+                        .map(|k| if k < 75 { 0.0 } else { 0.0011 })
+                        .collect();
+                    s.error = 0.000825;
+                }
+                s
+            })
+        });
         assert_eq!(c.order, 1);
-        assert_eq!(c.compared[0], (1, 2, 2f64.powi(-12)));
     }
 }
