@@ -95,6 +95,42 @@ fn per_output(
         .collect()
 }
 
+/// Each output's variance over the rows of `y` from `skip` on, floored at 1e-300: the scale
+/// of [`normalised_losses`] (a constant output would otherwise divide by zero).
+pub fn output_variances(y: &DMatrix<f64>, skip: usize) -> Vec<f64> {
+    (0..y.ncols())
+        .map(|j| {
+            let c: Vec<f64> = y.column(j).iter().skip(skip).copied().collect();
+            if c.is_empty() {
+                1e-300
+            } else {
+                variance(&c).max(1e-300)
+            }
+        })
+        .collect()
+}
+
+/// Per-sample normalised squared error over the rows of `y` from `skip` on,
+/// sum_j (y_kj - yhat_kj)^2 / var_j / l (NaN rows where `yhat` is not finite): the losses
+/// whose mean is a held-out score and whose per-batch ratios the paired tests compare
+/// (`--order auto`'s check, diagnose's findings).
+pub fn normalised_losses(
+    y: &DMatrix<f64>,
+    yhat: &DMatrix<f64>,
+    var: &[f64],
+    skip: usize,
+) -> Vec<f64> {
+    let l = y.ncols().max(1) as f64;
+    (skip..y.nrows())
+        .map(|k| {
+            (0..y.ncols())
+                .map(|j| (y[(k, j)] - yhat[(k, j)]).powi(2) / var[j])
+                .sum::<f64>()
+                / l
+        })
+        .collect()
+}
+
 /// Mean of a slice (0 for an empty one).
 pub fn mean(v: &[f64]) -> f64 {
     if v.is_empty() {
@@ -128,5 +164,36 @@ mod tests {
         let yh = DMatrix::from_row_slice(3, 2, &[0.0, 0.0, 0.0, 0.0, 0.0, 0.0]);
         assert_eq!(mse_per_output(&y, &yh, 1), vec![2.5, 6.5]);
         assert_eq!(mse_per_output(&y, &yh, 0), vec![86.0 / 3.0, 14.0 / 3.0]);
+    }
+
+    /// The normalised losses' mean is the mean over outputs of MSE / var y on the rows from
+    /// `skip` on, each output scaled by its own variance there.
+    #[test]
+    fn normalised_losses_average_to_the_normalised_mse() {
+        let y = DMatrix::from_fn(40, 2, |k, j| {
+            ((k * (j + 2)) as f64 * 0.7).sin() * (j + 1) as f64
+        });
+        let yhat = DMatrix::from_fn(40, 2, |k, j| y[(k, j)] + 0.1 * ((k + j) as f64).cos());
+        let skip = 5;
+        let var = output_variances(&y, skip);
+        let losses = normalised_losses(&y, &yhat, &var, skip);
+        assert_eq!(losses.len(), 35);
+        let direct: f64 = mse_per_output(&y, &yhat, skip)
+            .iter()
+            .zip(&var)
+            .map(|(m, v)| m / v)
+            .sum::<f64>()
+            / 2.0;
+        assert!(
+            (mean(&losses) - direct).abs() < 1e-14 * direct,
+            "{} {direct}",
+            mean(&losses)
+        );
+        // a constant output is floored, not divided by zero
+        let flat = DMatrix::from_element(10, 1, 3.0);
+        assert_eq!(output_variances(&flat, 0), vec![1e-300]);
+        let mut bad = yhat.clone();
+        bad[(7, 1)] = f64::NAN;
+        assert!(normalised_losses(&y, &bad, &var, skip)[2].is_nan());
     }
 }

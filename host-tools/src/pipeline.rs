@@ -315,29 +315,16 @@ pub fn held_out_error(model: &ModelFile, ds: &Dataset) -> Result<f64, Error> {
 pub fn held_out_score(model: &ModelFile, ds: &Dataset) -> Result<pbsid::FreeRunScore, Error> {
     let samples = (ds.len() / 4).min(X0_SAMPLES);
     let r = run(model, ds, Mode::FreeRun, X0::Estimate { samples })?;
-    let (n, l) = (r.y.nrows(), r.y.ncols());
+    let n = r.y.nrows();
     if n <= r.skip + 1 {
         return Ok(pbsid::FreeRunScore {
             error: f64::INFINITY,
             losses: Vec::new(),
         });
     }
-    let mut total = 0.0;
-    let mut losses = vec![0.0; n - r.skip];
-    for j in 0..l {
-        let y: Vec<f64> = (r.skip..n).map(|k| r.y[(k, j)]).collect();
-        let m = y.iter().sum::<f64>() / y.len() as f64;
-        let var = (y.iter().map(|v| (v - m) * (v - m)).sum::<f64>() / y.len() as f64).max(1e-300);
-        let sq: Vec<f64> = (r.skip..n)
-            .map(|k| (r.y[(k, j)] - r.yhat[(k, j)]).powi(2))
-            .collect();
-        let mse = sq.iter().sum::<f64>() / y.len() as f64;
-        total += mse / var;
-        for (s, e) in losses.iter_mut().zip(&sq) {
-            *s += e / var / l as f64;
-        }
-    }
-    let e = total / l as f64;
+    let var = crate::metrics::output_variances(&r.y, r.skip);
+    let losses = crate::metrics::normalised_losses(&r.y, &r.yhat, &var, r.skip);
+    let e = crate::metrics::mean(&losses);
     Ok(pbsid::FreeRunScore {
         error: if e.is_finite() { e } else { f64::INFINITY },
         losses,

@@ -990,9 +990,7 @@ pub fn leans_on_start(m: &LpvSs, x0: &DVector<f64>, sig: &Signals, fb: &Feedback
     let big_n = sig.len();
     let from_start = crate::simulate::free_run_ss(m, sig, fb, x0, big_n);
     let from_zero = crate::simulate::free_run_ss(m, sig, fb, &DVector::zeros(m.n()), big_n);
-    let var_y: Vec<f64> = (0..sig.y.ncols())
-        .map(|j| sig.y.column(j).variance().max(1e-300))
-        .collect();
+    let var_y = crate::metrics::output_variances(&sig.y, 0);
     crate::simulate::start_influence(&sig.y, &from_start, &from_zero, &var_y, big_n / 2)
         .leans_on_start()
 }

@@ -214,12 +214,7 @@ impl Eval {
         let yhat_free = crate::simulate::free_run_estimated(&model.kind, &sig, &fb, skip);
         let yhat_pred = simulate_signals(&model.kind, &sig, Mode::Predictor);
         let yhat_zero = crate::simulate::simulate_feedback(&model.kind, &sig, &fb, Mode::FreeRun);
-        let var_y = (0..sig.y.ncols())
-            .map(|j| {
-                let c: Vec<f64> = sig.y.column(j).iter().skip(skip).copied().collect();
-                super::stats::var(&c).max(1e-300)
-            })
-            .collect();
+        let var_y = crate::metrics::output_variances(&sig.y, skip);
         Ok(Eval {
             y: sig.y,
             yhat_free,
@@ -241,16 +236,11 @@ impl Eval {
     /// Per-sample normalised squared error sum_j e_jk^2 / var y_j / l over the scored rows
     /// (NaN rows when the simulation diverged).
     pub fn loss(&self, mode: Mode) -> Vec<f64> {
-        let e = self.residual(mode);
-        let l = e.ncols() as f64;
-        (self.skip..e.nrows())
-            .map(|k| {
-                (0..e.ncols())
-                    .map(|j| e[(k, j)] * e[(k, j)] / self.var_y[j])
-                    .sum::<f64>()
-                    / l
-            })
-            .collect()
+        let yhat = match mode {
+            Mode::FreeRun => &self.yhat_free,
+            Mode::Predictor => &self.yhat_pred,
+        };
+        crate::metrics::normalised_losses(&self.y, yhat, &self.var_y, self.skip)
     }
 
     /// Whether the simulated outputs of `mode` leave the measured outputs' range on the

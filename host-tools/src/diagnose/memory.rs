@@ -49,18 +49,7 @@ fn second_half(eval: &Eval, from_zero: &DMatrix<f64>) -> Memory {
 /// Per-sample normalised squared error of the free run from the zero state over the second
 /// half of the scored rows (as [`Eval::loss`], NaN where the run diverged).
 pub fn zero_start_tail_loss(eval: &Eval) -> Vec<f64> {
-    let l = eval.y.ncols() as f64;
-    (tail_start(eval)..eval.y.nrows())
-        .map(|k| {
-            (0..eval.y.ncols())
-                .map(|j| {
-                    let e = eval.y[(k, j)] - eval.yhat_zero[(k, j)];
-                    e * e / eval.var_y[j]
-                })
-                .sum::<f64>()
-                / l
-        })
-        .collect()
+    crate::metrics::normalised_losses(&eval.y, &eval.yhat_zero, &eval.var_y, tail_start(eval))
 }
 
 /// A candidate may be applied only if it forgets its initial state as its null does: it is

@@ -697,14 +697,8 @@ fn design_residual(
     fb: &crate::model::Feedback,
 ) -> nalgebra::DMatrix<f64> {
     let run = |mode| &sig.y - crate::simulate::simulate_feedback(&base.model.kind, sig, fb, mode);
-    // each output's own variance, once ([`crate::linalg::mean_std`])
-    let var_y: Vec<f64> = (0..sig.y.ncols())
-        .map(|j| {
-            crate::linalg::mean_std(sig.y.column(j).iter().copied())
-                .1
-                .powi(2)
-        })
-        .collect();
+    // each output's own variance, once
+    let var_y = crate::metrics::output_variances(&sig.y, 0);
     let informative = |res: &nalgebra::DMatrix<f64>| {
         var_y.iter().enumerate().all(|(j, v)| {
             let mse = res.column(j).iter().map(|e| e * e).sum::<f64>() / res.nrows().max(1) as f64;
