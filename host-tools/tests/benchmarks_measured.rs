@@ -6,15 +6,21 @@
 
 mod benchmarks_support;
 
-use benchmarks_support::{benches, describe, run_bench, run_bench_at, shared_data, Bench, Result};
+use benchmarks_support::{benches, describe, run_bench_at, shared_data, Bench, Result};
 
+/// The benchmark `name` run with the user's model at past window 10 (None without the data).
 fn bench(name: &str) -> Option<(Bench, Result)> {
+    bench_at(name, 10)
+}
+
+/// [`bench`] with the user's model identified at past window `past`.
+fn bench_at(name: &str, past: usize) -> Option<(Bench, Result)> {
     let Some(dir) = shared_data() else {
         eprintln!("skipped: ../shared/data not found");
         return None;
     };
     let b = benches().into_iter().find(|b| b.name == name).unwrap();
-    let r = run_bench(&dir, &b);
+    let r = run_bench_at(&dir, &b, past);
     println!("{}", describe(&b, &r));
     Some((b, r))
 }
@@ -63,16 +69,9 @@ fn silverbox_arrow() {
 #[test]
 #[ignore = "long tier: make test-long"]
 fn silverbox_arrow_from_three_states() {
-    let Some(dir) = shared_data() else {
-        eprintln!("skipped: ../shared/data not found");
+    let Some((_, r)) = bench_at("silverbox", 5) else {
         return;
     };
-    let b = benches()
-        .into_iter()
-        .find(|b| b.name == "silverbox")
-        .unwrap();
-    let r = run_bench_at(&dir, &b, 5);
-    println!("{}", describe(&b, &r));
     assert_eq!(r.model.fit["order"], 3, "{}", r.model.fit["order_reason"]);
     assert_cubic_found(&r);
 }
@@ -175,7 +174,7 @@ fn order_auto_checks_the_free_run() {
             let e = |o: u64| seen.iter().find(|s| s.0 == o).map(|s| 1.0 - s.1 / 100.0);
             let en = e(n).unwrap();
             // the paired test's p-value of each comparison the check made
-            let p = |o: u64| {
+            let p_of = |o: u64| {
                 check["compared"]
                     .as_array()
                     .unwrap()
@@ -185,7 +184,7 @@ fn order_auto_checks_the_free_run() {
             };
             for o in [n + 1, n + 2] {
                 if let Some(eo) = e(o) {
-                    let p = p(o).expect("every larger order scored was compared");
+                    let p = p_of(o).expect("every larger order scored was compared");
                     assert!(
                         !lpvid_host::pbsid::far_worse(en, eo, p),
                         "{name} past {past}: {check}"

@@ -710,7 +710,7 @@ fn nested_unbeaten(scored: &[Scored], big: usize, sig: &impl Fn(&Scored) -> bool
 
 /// Whether `big` is `small` with input channels appended and nothing else changed (the same
 /// scheduling, outputs, windows, order and estimator).
-pub fn adds_inputs(big: &Spec, small: &Spec) -> bool {
+fn adds_inputs(big: &Spec, small: &Spec) -> bool {
     let (bs, ss) = (&big.signals, &small.signals);
     bs.inputs.len() > ss.inputs.len()
         && bs.inputs.starts_with(&ss.inputs)
