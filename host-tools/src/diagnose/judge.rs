@@ -418,8 +418,11 @@ impl Bench<'_> {
         // (states::states_check: a white refined residual; the order refined like with like)
         if states::needs_states_check(s) {
             j.states = refs.refined(self).and_then(|r| {
-                let refit = |sp: &Spec| fit_eval(sp, self.train, self.val, self.fit);
-                states::states_check(s, self.base_eval, r, refit, self.tried, short)
+                let refit = |sp: &Spec| {
+                    let f = super::refit::fit_spec(sp, self.train, self.fit).ok()?;
+                    Some((f.order, Eval::new(&f.model, self.val).ok()?))
+                };
+                states::states_check(s, self.base_eval, r, self.order, refit, self.tried, short)
             });
         }
         if !j.states.as_ref().is_none_or(|c| c.passes) {

@@ -802,8 +802,14 @@ fn diagnose_step(
             cands.push(l.clone());
         }
     }
-    let tried = cands.len();
-    let (scored, nulls) = score_all(cands, train, val, fit, base_eval, threads, progress);
+    let mut tried = cands.len();
+    let (mut scored, nulls) = score_all(cands, train, val, fit, base_eval, threads, progress);
+    // a dead time the model's fixed order may hold in states, at the delay its delayed
+    // variants scored best (catalogue::fewer_states_delays): one more variant per input
+    for c in catalogue::fewer_states_delays(spec, &scored) {
+        tried += 1;
+        scored.push(effects::score(c, train, val, fit, Some(base_eval)));
+    }
     // the evaluation of the model's structure with a larger past window, which every
     // finding must also beat (used by the replication's alternatives and the check below)
     let larger_eval = larger.as_ref().and_then(|l| {
