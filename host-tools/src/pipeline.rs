@@ -474,7 +474,7 @@ fn check_order(
         "held_out": held,
         "free_run": vafs,
         "compared": compared,
-        "rule": format!("an order is replaced by order + 1 or + 2 when its held-out free-run error is more than {} times theirs, or more than {} times theirs and either {} above (normalised MSE) or significantly above (paired signed-rank test of per-batch log ratios, p < {})", pbsid::FAR_WORSE_FACTOR, pbsid::FAR_WORSE_RATIO, pbsid::FAR_WORSE_GAP, pbsid::ORDER_ALPHA),
+        "rule": format!("an order is replaced by order + 1 or + 2 when its held-out free-run error is more than {} times theirs, or more than {} times theirs and either {} above (normalised MSE) or significantly above (paired signed-rank test of per-batch log ratios, at least {} batches of at least {} samples where the held-out samples allow, p < {})", pbsid::FAR_WORSE_FACTOR, pbsid::FAR_WORSE_RATIO, pbsid::FAR_WORSE_GAP, pbsid::ORDER_MIN_BATCHES, pbsid::ORDER_MIN_BATCH_LEN, pbsid::ORDER_ALPHA),
     });
     if n == n0 {
         return Ok((fit, opts.clone(), Some(record)));

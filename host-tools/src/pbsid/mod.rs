@@ -52,7 +52,8 @@ pub use dual::{
 pub use error::FitError;
 pub use order::{
     far_worse, free_run_order, paired_p, select_order, FreeRunScore, OrderCheck, FAR_WORSE_FACTOR,
-    FAR_WORSE_GAP, FAR_WORSE_RATIO, FLOOR_FACTOR, ORDER_ALPHA,
+    FAR_WORSE_GAP, FAR_WORSE_RATIO, FLOOR_FACTOR, ORDER_ALPHA, ORDER_MIN_BATCHES,
+    ORDER_MIN_BATCH_LEN,
 };
 pub use realize::{gamma_k, realize_from_states, realize_from_stats};
 pub use scaling::{centre_in_doubt, unscale, Scaling, P_ZERO_EDGE, P_ZERO_INSIDE};

@@ -131,11 +131,26 @@ pub fn far_worse(e_n: f64, e_larger: f64, p_value: f64) -> bool {
                 && (e_n - e_larger > FAR_WORSE_GAP || p_value < ORDER_ALPHA)))
 }
 
+/// Fewest batches of the order check's paired test ([`paired_p`]): the exact signed-rank test
+/// of B batches cannot give a p-value below 2^-B, so with the 25-sample batches of
+/// [`crate::significance::batch_count`] a held-out last fifth of under 175 scored samples
+/// (about 1100 training rows) gave at most 6 batches, p >= 1/64, and the clause at
+/// [`ORDER_ALPHA`] could never fire: on the clean family plants 237203 and 237208 (1000 rows)
+/// every batch favoured the larger order (p = 1/64, error ratios 1.18 and 1.32) and the order
+/// stayed a state short, which diagnose then named (docs/bench-diagnose.md, forty-fourth
+/// session). Eight batches reach 1/256, and 2/256 with one batch against.
+pub const ORDER_MIN_BATCHES: usize = 8;
+
+/// ... of at least this many samples each (fewer samples, fewer batches).
+pub const ORDER_MIN_BATCH_LEN: usize = 10;
+
 /// One-sided p-value that the larger order's held-out losses are lower than order n's: the
-/// signed-rank test of their per-batch log ratios ([`crate::significance::compare`]), on the
-/// samples both scored (the last ones when one run scored fewer). 1 when either has no finite
-/// losses to compare.
+/// signed-rank test of their per-batch log ratios ([`crate::significance::compare`]'s test),
+/// on the samples both scored (the last ones when one run scored fewer), in at least
+/// [`ORDER_MIN_BATCHES`] batches where the samples allow. 1 when either has no finite losses
+/// to compare.
 pub fn paired_p(n: &FreeRunScore, larger: &FreeRunScore) -> f64 {
+    use crate::significance::{batch_count, batch_log_ratios, signed_rank_p};
     let k = n.losses.len().min(larger.losses.len());
     let (a, b) = (
         &n.losses[n.losses.len() - k..],
@@ -144,7 +159,13 @@ pub fn paired_p(n: &FreeRunScore, larger: &FreeRunScore) -> f64 {
     if k == 0 || a.iter().chain(b).any(|v| !v.is_finite()) {
         return 1.0;
     }
-    crate::significance::compare(a, b).p_value
+    let batches = batch_count(k).max(ORDER_MIN_BATCHES.min(k / ORDER_MIN_BATCH_LEN));
+    let ratios = batch_log_ratios(a, b, batches);
+    if ratios.is_empty() {
+        1.0
+    } else {
+        signed_rank_p(&ratios)
+    }
 }
 
 /// What the order check of `--order auto` found ([`free_run_order`]).
@@ -258,6 +279,14 @@ mod tests {
         );
         assert_eq!(paired_p(&flat(0.012, 500), &flat(f64::NAN, 500)), 1.0);
         assert_eq!(paired_p(&flat(0.012, 0), &flat(0.008, 500)), 1.0);
+        // a short held-out record (150 samples: six batches of 25 could give at best 1/64)
+        // is cut into eight batches, so the test can reach ORDER_ALPHA; 60 samples into six
+        assert_eq!(
+            paired_p(&flat(0.012, 150), &flat(0.008, 150)),
+            2f64.powi(-8)
+        );
+        assert!(paired_p(&flat(0.012, 150), &flat(0.008, 150)) < ORDER_ALPHA);
+        assert_eq!(paired_p(&flat(0.012, 60), &flat(0.008, 60)), 2f64.powi(-6));
     }
 
     #[test]
