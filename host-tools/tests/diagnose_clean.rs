@@ -9,10 +9,9 @@ mod diagnose_support;
 
 use diagnose_support::family::{
     assert_refined_not_coloured, blocked_finding, diagnose_one, diagnose_one_auto, number_after,
-    run_one,
+    run_one, states,
 };
 use lpvid_host::diagnose::plants::Shape;
-use lpvid_host::model::ModelKind;
 use lpvid_host::simulate::Mode;
 
 /// clean plant 31002 (order 4, affine in p1, past window 7, white output noise 1.9 %): an AR
@@ -128,10 +127,7 @@ fn a_delay_the_refined_structure_matches_is_not_a_finding() {
 #[test]
 fn a_dead_time_the_automatic_order_held_in_states_is_given_back() {
     let (model, out) = diagnose_one_auto("input-delay", 236001, 1000, Shape::SISO);
-    let ModelKind::Ss(ss) = &model.kind else {
-        panic!("an lpv-ss model");
-    };
-    assert_eq!(ss.n(), 7, "--order auto read {} states", ss.n());
+    assert_eq!(states(&model), Some(7), "--order auto");
     let f = &out.report.findings[0];
     println!(
         "{} ({}) {:.3} {:?}",
@@ -148,10 +144,7 @@ fn a_dead_time_the_automatic_order_held_in_states_is_given_back() {
         "{:?}",
         f.evidence
     );
-    let ModelKind::Ss(fixed) = &out.model.kind else {
-        panic!("an lpv-ss model");
-    };
-    assert_eq!(fixed.n(), 4);
+    assert_eq!(states(&out.model), Some(4));
     let after = out.after_eval.as_ref().expect("a fix applied");
     let ratio = out.before_eval.mse(Mode::FreeRun) / after.mse(Mode::FreeRun);
     assert!(ratio > 1.7, "{ratio}");

@@ -9,7 +9,7 @@ mod diagnose_support;
 
 use diagnose_support::family::{
     assert_refined_not_coloured, blocked_finding, diagnose_one_auto, diagnose_one_shaped,
-    number_after, run_one_shaped,
+    number_after, run_one_shaped, states,
 };
 use lpvid_host::diagnose::plants::Shape;
 
@@ -99,10 +99,7 @@ fn an_own_output_channel_that_only_escapes_a_local_minimum_is_not_a_finding() {
 fn a_noise_state_replicates_against_the_null_at_the_order_it_was_fitted() {
     let (model, out) =
         diagnose_one_auto("coloured-noise", 233002, 1000, Shape::parse("2x1").unwrap());
-    let lpvid_host::model::ModelKind::Ss(ss) = &model.kind else {
-        panic!("an lpv-ss model");
-    };
-    assert_eq!(ss.n(), 1, "--order auto read {} states", ss.n());
+    assert_eq!(states(&model), Some(1), "--order auto");
     let f = &out.report.findings[0];
     println!(
         "{} ({}) {:.3} {:?}",

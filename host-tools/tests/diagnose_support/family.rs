@@ -404,6 +404,14 @@ pub fn diagnose_one_shaped(
     diagnose_case(family_case_shaped(effect, seed, n, shape).unwrap())
 }
 
+/// The states of an LPV state-space model (None for an LPV-ARX model).
+pub fn states(model: &ModelFile) -> Option<usize> {
+    match &model.kind {
+        lpvid_host::model::ModelKind::Ss(ss) => Some(ss.n()),
+        _ => None,
+    }
+}
+
 /// [`diagnose_one_shaped`] with the user's order left to `--order auto` (what
 /// `LPVID_FAMILY_ORDER=auto` does in the family run).
 pub fn diagnose_one_auto(
