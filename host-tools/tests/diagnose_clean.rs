@@ -8,8 +8,8 @@
 mod diagnose_support;
 
 use diagnose_support::family::{
-    assert_refined_not_coloured, blocked_finding, diagnose_one, diagnose_one_auto, number_after,
-    run_one, states,
+    assert_evidence, assert_refined_not_coloured, blocked_finding, diagnose_one, diagnose_one_auto,
+    named_first, number_after, run_one, states,
 };
 use lpvid_host::diagnose::plants::Shape;
 use lpvid_host::simulate::Mode;
@@ -128,22 +128,10 @@ fn a_delay_the_refined_structure_matches_is_not_a_finding() {
 fn a_dead_time_the_automatic_order_held_in_states_is_given_back() {
     let (model, out) = diagnose_one_auto("input-delay", 236001, 1000, Shape::SISO);
     assert_eq!(states(&model), Some(7), "--order auto");
-    let f = &out.report.findings[0];
-    println!(
-        "{} ({}) {:.3} {:?}",
-        f.effect, f.detail, f.explained, f.evidence
-    );
-    assert_eq!(f.effect, "input-delay");
-    assert!(f.significant, "{:?}", f.blocked_by);
+    let f = named_first(&out.report, "input-delay");
     assert!(f.detail.contains("u1(k-4) instead of u1"), "{}", f.detail);
     assert!(f.detail.contains("order 4, was 7"), "{}", f.detail);
-    assert!(
-        f.evidence
-            .iter()
-            .any(|e| e.contains("stood for a dead time")),
-        "{:?}",
-        f.evidence
-    );
+    assert_evidence(f, "stood for a dead time");
     assert_eq!(states(&out.model), Some(4));
     let after = out.after_eval.as_ref().expect("a fix applied");
     let ratio = out.before_eval.mse(Mode::FreeRun) / after.mse(Mode::FreeRun);
@@ -183,27 +171,11 @@ fn a_biased_estimate_is_a_note_not_a_missing_state() {
 #[ignore = "long tier: make test-long"]
 fn coloured_noise_and_missing_states_are_still_named() {
     let (_, out) = diagnose_one("coloured-noise", 33000, 1500);
-    let f = out.report.findings.first().expect("findings");
-    println!("{} ({}) {:?}", f.effect, f.detail, f.evidence);
-    assert_eq!(f.effect, "coloured-noise");
-    assert!(f.significant);
-    assert!(
-        f.evidence.iter().any(|e| e.contains("is not white")),
-        "{:?}",
-        f.evidence
-    );
+    let f = named_first(&out.report, "coloured-noise");
+    assert_evidence(f, "is not white");
     let (_, out) = diagnose_one("order-too-low", 31003, 1500);
-    let f = out.report.findings.first().expect("findings");
-    println!("{} ({}) {:?}", f.effect, f.detail, f.evidence);
-    assert_eq!(f.effect, "order-too-low");
-    assert!(f.significant);
-    assert!(
-        f.evidence
-            .iter()
-            .any(|e| e.contains("refined by output error like the model's own structure")),
-        "{:?}",
-        f.evidence
-    );
+    let f = named_first(&out.report, "order-too-low");
+    assert_evidence(f, "refined by output error like the model's own structure");
     for (effect, seed, at_least) in [
         ("coloured-noise", 33000, 10.0),
         ("order-too-low", 31003, 2.0),

@@ -9,7 +9,7 @@ mod diagnose_support;
 
 use diagnose_support::family::{
     assert_refined_not_coloured, blocked_finding, diagnose_one_auto, diagnose_one_shaped,
-    number_after, run_one_shaped, states,
+    named_first, number_after, run_one_shaped, states,
 };
 use lpvid_host::diagnose::plants::Shape;
 
@@ -100,13 +100,7 @@ fn a_noise_state_replicates_against_the_null_at_the_order_it_was_fitted() {
     let (model, out) =
         diagnose_one_auto("coloured-noise", 233002, 1000, Shape::parse("2x1").unwrap());
     assert_eq!(states(&model), Some(1), "--order auto");
-    let f = &out.report.findings[0];
-    println!(
-        "{} ({}) {:.3} {:?}",
-        f.effect, f.detail, f.explained, f.replication
-    );
-    assert_eq!(f.effect, "coloured-noise");
-    assert!(f.significant, "{:?}", f.blocked_by);
+    let f = named_first(&out.report, "coloured-noise");
     let rep = f.replication.as_ref().expect("replicated on the halves");
     assert!(rep.iter().all(|&e| e > 0.15), "{rep:?}");
     assert_eq!(out.report.applied.len(), 1);

@@ -28,7 +28,7 @@ use super::refit::{Fitted, Spec};
 use super::replicate::{Halves, Replication};
 use super::residual::{ResidualReport, ALPHA};
 use super::{catalogue, encompass, output, replicate, states};
-use super::{fit_eval, mean_vaf, mode_name};
+use super::{fit_eval, fit_eval_order, mean_vaf, mode_name};
 use crate::data::Dataset;
 use crate::simulate::Mode;
 
@@ -418,10 +418,7 @@ impl Bench<'_> {
         // (states::states_check: a white refined residual; the order refined like with like)
         if states::needs_states_check(s) {
             j.states = refs.refined(self).and_then(|r| {
-                let refit = |sp: &Spec| {
-                    let f = super::refit::fit_spec(sp, self.train, self.fit).ok()?;
-                    Some((f.order, Eval::new(&f.model, self.val).ok()?))
-                };
+                let refit = |sp: &Spec| fit_eval_order(sp, self.train, self.val, self.fit);
                 states::states_check(s, self.base_eval, r, self.order, refit, self.tried, short)
             });
         }

@@ -339,9 +339,18 @@ fn fit_eval(
     val: &Dataset,
     base_fit: &serde_json::Value,
 ) -> Option<Eval> {
-    fit_spec(spec, train, base_fit)
-        .ok()
-        .and_then(|f| Eval::new(&f.model, val).ok())
+    fit_eval_order(spec, train, val, base_fit).map(|(_, e)| e)
+}
+
+/// [`fit_eval`] with the order the refit took (its states).
+fn fit_eval_order(
+    spec: &Spec,
+    train: &Dataset,
+    val: &Dataset,
+    base_fit: &serde_json::Value,
+) -> Option<(usize, Eval)> {
+    let f = fit_spec(spec, train, base_fit).ok()?;
+    Some((f.order, Eval::new(&f.model, val).ok()?))
 }
 
 fn threshold() -> Threshold {

@@ -357,6 +357,30 @@ pub fn blocked_finding<'r>(
     (f, f.blocked_by.as_deref().unwrap_or(""))
 }
 
+/// The first finding of a report, printed, asserted to be a significant `effect`.
+pub fn named_first<'r>(
+    report: &'r lpvid_host::diagnose::Report,
+    effect: &str,
+) -> &'r lpvid_host::diagnose::effects::Finding {
+    let f = report.findings.first().expect("findings");
+    println!(
+        "{} ({}) {:.3} {:?} {:?}",
+        f.effect, f.detail, f.explained, f.replication, f.evidence
+    );
+    assert_eq!(f.effect, effect);
+    assert!(f.significant, "{:?}", f.blocked_by);
+    f
+}
+
+/// Assert that one of a finding's evidence lines contains `text`.
+pub fn assert_evidence(f: &lpvid_host::diagnose::effects::Finding, text: &str) {
+    assert!(
+        f.evidence.iter().any(|e| e.contains(text)),
+        "{text}: {:?}",
+        f.evidence
+    );
+}
+
 /// The number written right after `marker` in `text` (a p-value or a percentage in a
 /// finding's words).
 pub fn number_after(text: &str, marker: &str) -> f64 {
