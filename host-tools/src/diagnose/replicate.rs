@@ -175,15 +175,18 @@ fn distinct_columns<'f>(
 /// The parts of the held-out record `val` on which a refit on the training half `half` is
 /// scored in the replication: the stretches where every column of `cols` lies in the range
 /// `half` saw, of at least [`SUPPORT_MIN_PART`] samples. None when the whole record is
-/// inside but for excursions shorter than [`SUPPORT_EXCURSION`] (the usual case: scored
-/// whole, as before), or when no part is long enough (scored whole: there is nothing else
-/// to judge it on). Those short excursions stay in the parts of an operating column
-/// ([`operating_columns`]); with `feedback` (the columns are the model's own outputs,
-/// [`own_output_columns`]) every sample beyond the range cuts the part, since the output
-/// feeds back and a few samples on a branch of f(y) the half never fitted can carry the free
-/// run into another regime (the family's sin plant 217003: the second half saw y1 in
-/// [-4.1, 5.0], the held-out record reached -9.4 and 8.3, and sin(0.51 y1) fitted there ran
-/// at VAF 0 on held-out rows 0-416, whose one long excursion is an 18-sample one to 7.8).
+/// inside (for an operating column ([`operating_columns`]): but for excursions shorter than
+/// [`SUPPORT_EXCURSION`], which stay in its parts; the usual case: scored whole, as before),
+/// or when no part is long enough (scored whole: there is nothing else to judge it on). With
+/// `feedback` (the columns are the model's own outputs, [`own_output_columns`]) every sample
+/// beyond the range cuts the part, a brief excursion too, since the output feeds back and a
+/// few samples on a branch of f(y) the half never fitted can carry the free run into another
+/// regime: the family's sin plant 217003 (the second half saw y1 in [-4.1, 5.0], the held-out
+/// record reached -9.4 and 8.3, and sin(0.51 y1) fitted there ran at VAF 0 on held-out rows
+/// 0-416, whose one long excursion is an 18-sample one to 7.8), and the cubic spring 238102
+/// under `--order auto` (the first half saw y1 in [-0.64, 0.44], the held-out record reached
+/// -0.95 and 0.89 in 31 samples, none of its excursions 25 long, and y1^3 fitted there ran
+/// away).
 ///
 /// Why: a replication asks whether a variant's gain recurs under independent estimation
 /// noise. When the operating point drifts or is swept (p1 rising through the training record
@@ -213,17 +216,19 @@ pub fn support_parts(
             inside[k] &= x >= lo && x <= hi;
         }
     }
-    // excursions shorter than a batch stay in
-    let mut filled = inside.clone();
-    for (lo, hi) in runs(&inside, false) {
-        if hi - lo < SUPPORT_EXCURSION {
-            filled[lo..hi].fill(true);
+    // excursions of an operating column shorter than a batch stay in; with the output fed
+    // back every sample beyond the range cuts
+    if !feedback {
+        for (lo, hi) in runs(&inside.clone(), false) {
+            if hi - lo < SUPPORT_EXCURSION {
+                inside[lo..hi].fill(true);
+            }
         }
     }
-    if filled.iter().all(|&v| v) {
+    if inside.iter().all(|&v| v) {
         return None;
     }
-    let parts: Vec<(usize, usize)> = runs(if feedback { &inside } else { &filled }, true)
+    let parts: Vec<(usize, usize)> = runs(&inside, true)
         .into_iter()
         .filter(|(lo, hi)| hi - lo >= SUPPORT_MIN_PART)
         .collect();
@@ -833,12 +838,16 @@ mod tests {
             .iter_mut()
             .for_each(|v| *v = 0.5);
         assert_eq!(support_parts(&rising, &sched(short), &cols, false), None);
-        // an output fed back: the record is cut only where an excursion of 25 samples or more
-        // leaves the range, and then every sample beyond it cuts the parts
+        // an output fed back: every sample beyond the range cuts the parts, a brief
+        // excursion too (an operating column keeps it)
         let mut out = vec![0.5; 1000];
         out[300..310].iter_mut().for_each(|v| *v = 2.0);
         assert_eq!(
             support_parts(&range, &sched(out.clone()), &cols, true),
+            Some(vec![(0, 300), (310, 1000)])
+        );
+        assert_eq!(
+            support_parts(&range, &sched(out.clone()), &cols, false),
             None
         );
         out[600..630].iter_mut().for_each(|v| *v = -1.0);
