@@ -219,7 +219,7 @@ pub fn support_parts(
     // excursions of an operating column shorter than a batch stay in; with the output fed
     // back every sample beyond the range cuts
     if !feedback {
-        for (lo, hi) in runs(&inside.clone(), false) {
+        for (lo, hi) in runs(&inside, false) {
             if hi - lo < SUPPORT_EXCURSION {
                 inside[lo..hi].fill(true);
             }
