@@ -494,17 +494,17 @@ pub fn fit_spec_on(
 /// free run (its output-error variance from the training data; with `latent.smooth` the
 /// smoothness prior fitted to each column) is estimated, its Gauss-Newton steps started from
 /// the sequence the model was fitted on (p~ in the first round), and the structure refitted
-/// on p^ at the order its fit on p~ took (under `--order auto` the singular values of a refit
-/// on p^ read another order on a clean plant 238201 whose automatic model was a state short:
-/// three, and the variant's gain over its null at two states was that state, named as
-/// scheduling-noise at 3.42x); the rounds stop early when a round changes p^ by less than 1 % of the first round's
-/// move. The refits start again from PBSID, so the rounds are not descent steps on one
-/// objective and their held-out error can rise after the first (docs/bench-diagnose.md, "A
-/// smoothness prior on the latent scheduling sequence"): the round kept is the one whose
-/// refit and sequence have the lowest joint objective on the training data
-/// ([`super::latent::joint_objective`]). The model reads the plain columns: it describes the plant's response to the
-/// true p (as the BC-IV path's LPV-ARX model does), so it is judged on held-out data as any
-/// other refit. The `fit` record gains `scheduling_estimate`.
+/// on p^ at the order its fit on p~ took, its null's (under `--order auto` a refit on p^ read
+/// three states on clean plant 238201, whose automatic model had two, and that state was
+/// named scheduling-noise at 3.42x); the rounds stop early when a round changes p^ by less
+/// than 1 % of the first round's move. The refits start again from PBSID, so the rounds are
+/// not descent steps on one objective and their held-out error can rise after the first
+/// (docs/bench-diagnose.md, "A smoothness prior on the latent scheduling sequence"): the
+/// round kept is the one whose refit and sequence have the lowest joint objective on the
+/// training data ([`super::latent::joint_objective`]). The model reads the plain columns: it
+/// describes the plant's response to the true p (as the BC-IV path's LPV-ARX model does), so
+/// it is judged on held-out data as any other refit. The `fit` record gains
+/// `scheduling_estimate`.
 pub fn fit_latent(
     spec: &Spec,
     latent: &LatentSpec,
