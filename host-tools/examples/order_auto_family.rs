@@ -5,7 +5,8 @@
 //! record (from an estimated initial state, `pipeline::held_out_error`).
 //! `cargo run --release -p lpvid-host --example order_auto_family -- [seeds] [N] [first seed]
 //! [effects, comma-separated]` (defaults 20, 1500, 1000, `clean`); `LPVID_FAMILY_SHAPE=2x1`
-//! etc. as in `diagnose_family`. Prints one line per plant and the counts of orders below,
+//! etc. as in `diagnose_family`, and `LPVID_FAMILY_DUMP=DIR` writes each plant's records and
+//! options as there. Prints one line per plant and the counts of orders below,
 //! at and above the truth, and the spread of the validation error ratio (chosen / true
 //! order). The figures are in docs/bench-diagnose.md.
 
@@ -60,6 +61,11 @@ fn main() {
                     continue;
                 }
             };
+            if let Ok(dir) = std::env::var("LPVID_FAMILY_DUMP") {
+                if let Err(e) = case.dump(std::path::Path::new(&dir)) {
+                    eprintln!("LPVID_FAMILY_DUMP: {e}");
+                }
+            }
             let truth = case.planted.states;
             let scored = fit(&case, "auto").and_then(|auto| {
                 let fixed = fit(&case, &truth.to_string())?;

@@ -74,6 +74,27 @@ pub struct FamilyCase {
     pub planted: Planted,
 }
 
+impl FamilyCase {
+    /// Write the records and the user's `lpvid pbsid` options into `dir` as
+    /// `EFFECT-SEED.train.csv`, `.val.csv` and `.args`, so that a plant of a family run can be
+    /// traced through the command line (`LPVID_FAMILY_DUMP` of the family examples).
+    pub fn dump(&self, dir: &std::path::Path) -> Result<(), String> {
+        let base = dir.join(format!("{}-{}", self.effect, self.seed));
+        let text = |e: crate::data::DataError| e.to_string();
+        self.train
+            .write_csv(&base.with_extension("train.csv"))
+            .map_err(text)?;
+        self.val
+            .write_csv(&base.with_extension("val.csv"))
+            .map_err(text)?;
+        std::fs::write(
+            base.with_extension("args"),
+            self.pbsid_args.join(" ") + "\n",
+        )
+        .map_err(|e| format!("{}: {e}", base.with_extension("args").display()))
+    }
+}
+
 /// The planted effect's true structure as the generator drew it: what an oracle refit may use
 /// (the family benchmark's identifiability check, `tests/diagnose_support/family.rs`). Read
 /// only: recording it draws nothing, so the records of a seed are unchanged.

@@ -523,17 +523,7 @@ pub fn run_one_profiled(
     // LPVID_FAMILY_DUMP=DIR: the case's records and the user's `lpvid pbsid` options as
     // files, so a miss can be traced through the command line (`lpvid pbsid`, `diagnose`)
     if let Ok(dir) = std::env::var("LPVID_FAMILY_DUMP") {
-        let base = std::path::Path::new(&dir).join(format!("{effect}-{seed}"));
-        let tp = base.with_extension("train.csv");
-        let vp = base.with_extension("val.csv");
-        let ap = base.with_extension("args");
-        let dumped = case
-            .train
-            .write_csv(&tp)
-            .and_then(|_| case.val.write_csv(&vp));
-        if let Err(e) = dumped.map_err(|e| e.to_string()).and_then(|_| {
-            std::fs::write(&ap, case.pbsid_args.join(" ") + "\n").map_err(|e| e.to_string())
-        }) {
+        if let Err(e) = case.dump(std::path::Path::new(&dir)) {
             eprintln!("LPVID_FAMILY_DUMP: {e}");
         }
     }
