@@ -57,12 +57,9 @@ fn main() {
     }
     println!();
     println!("{}", family::matrix(&runs));
-    let clean: Vec<_> = runs.iter().filter(|r| r.planted == "clean").collect();
-    let alarms = clean.iter().filter(|r| r.named != "none").count();
     println!(
-        "clean plants with a finding: {alarms} of {} ({:.1} %); {} plants, N = {n}, {:.0} s",
-        clean.len(),
-        100.0 * alarms as f64 / clean.len().max(1) as f64,
+        "{}; {} plants, N = {n}, {:.0} s",
+        family::clean_line(&runs),
         runs.len(),
         t0.elapsed().as_secs_f64()
     );

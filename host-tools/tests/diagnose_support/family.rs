@@ -79,8 +79,9 @@ pub fn identifiable(explained: f64, p_value: f64) -> bool {
 /// searches one (the delay, the frequency, the order, the shape and scale of the feedback).
 /// `input-nonlinearity` of the tanh kind has no exact factor: its leading odd term u^3 and
 /// |u| u. `scheduling-noise`: the same structure, refit on the noise-free p1 (the returned
-/// training record). None for `clean`. On a MIMO plant the channel-specific structures name
-/// the planted channel (`u{input + 1}`, `y{output + 1}` of [`Planted`]); `feedthrough`
+/// training record). `clean`: the plant's order when the user's model has another (under
+/// `--order auto`), else None. On a MIMO plant the channel-specific structures name the
+/// planted channel (`u{input + 1}`, `y{output + 1}` of [`Planted`]); `feedthrough`
 /// estimates all of D, `output-offset` adds one constant input channel (it reaches every
 /// output), `coloured-noise` a noise model on every output: the catalogue's own structures,
 /// which are not per channel.
@@ -89,6 +90,7 @@ pub fn identifiable(explained: f64, p_value: f64) -> bool {
 fn oracle_spec(
     case: &FamilyCase,
     user: &Spec,
+    user_states: Option<usize>,
 ) -> Option<(String, Spec, lpvid_host::data::Dataset)> {
     let pl = &case.planted;
     let (un, yn) = (format!("u{}", pl.input + 1), format!("y{}", pl.output + 1));
@@ -156,16 +158,19 @@ fn oracle_spec(
             format!("sin/cos of the true frequency {om:.4} rad/sample, {h} harmonic(s)")
         }
         "order-too-low" => {
-            // as the catalogue's order variants: enough block rows for the singular values
-            let o = pl.states;
-            sp.opts.order = Order::Fixed(o);
-            let l = sp.signals.outputs.len().max(1);
-            let need = (o + 1).div_ceil(l);
-            if sp.opts.future.unwrap_or(sp.opts.past) < need {
-                sp.opts.past = sp.opts.past.max(need);
-                sp.opts.future = Some(need.min(sp.opts.past));
-            }
-            format!("order {o}")
+            at_order(&mut sp, pl.states);
+            format!("order {}", pl.states)
+        }
+        // a clean plant whose user model (`--order auto`) has another number of states: the
+        // user's structure at the plant's, so that a finding about a model a state short is
+        // told apart from a false alarm about the plant
+        "clean" if user_states != Some(pl.states) => {
+            at_order(&mut sp, pl.states);
+            format!(
+                "order {} (the plant's; the user's model has {})",
+                pl.states,
+                user_states.map_or("?".to_string(), |n| n.to_string())
+            )
         }
         "coloured-noise" => {
             // the plant is y = G u + v + e with v an AR(1): output error plus AR noise (the
@@ -211,12 +216,25 @@ fn oracle_spec(
     Some((detail, sp, train))
 }
 
-/// The oracle of `case` against the user's `model` ([`Oracle`]), in `mode`; None for clean
-/// plants. The refit is the diagnosis's own ([`fit_spec`], the user's `fit` record extended).
+/// The user's structure `sp` at order `o`, as the catalogue's order variants are: enough
+/// block rows for the singular values.
+fn at_order(sp: &mut Spec, o: usize) {
+    sp.opts.order = Order::Fixed(o);
+    let l = sp.signals.outputs.len().max(1);
+    let need = (o + 1).div_ceil(l);
+    if sp.opts.future.unwrap_or(sp.opts.past) < need {
+        sp.opts.past = sp.opts.past.max(need);
+        sp.opts.future = Some(need.min(sp.opts.past));
+    }
+}
+
+/// The oracle of `case` against the user's `model` ([`Oracle`]), in `mode`; for a clean
+/// plant only when the model's order is not the plant's (the plant's order is then the
+/// oracle), else None. The refit is the diagnosis's own ([`fit_spec`], the user's `fit` record extended).
 pub fn oracle(case: &FamilyCase, model: &ModelFile, mode: Mode) -> Option<Oracle> {
     let mut notes = Vec::new();
     let user = Spec::from_model(model, &mut notes).ok()?;
-    let (mut detail, sp, train) = oracle_spec(case, &user)?;
+    let (mut detail, sp, train) = oracle_spec(case, &user, states(model))?;
     let failed = |detail: &str, why: String| Oracle {
         detail: format!("{detail}: {why}"),
         ratio: f64::NAN,
@@ -760,7 +778,7 @@ impl std::fmt::Display for Ratio {
     }
 }
 
-/// Per planted effect (clean plants have no oracle): the raw recall, the plants whose oracle
+/// Per planted effect (clean plants apart: [`clean_line`]): the raw recall, the plants whose oracle
 /// is [`identifiable`], the recall among them, and each missed identifiable plant's oracle
 /// ratio against the ratio achieved, as a markdown table (printed after [`matrix`]).
 pub fn identifiable_table(runs: &[FamilyRun]) -> String {
@@ -830,4 +848,23 @@ pub fn identifiable_table(runs: &[FamilyRun]) -> String {
         );
     }
     s
+}
+
+/// The clean plants' line: how many got a finding, and of those how many are a finding about
+/// the user's model rather than the plant: the plant's own order, refit in the user's
+/// structure, is [`identifiable`] against the user's model (a model `--order auto` left a
+/// state or more short; [`oracle`]).
+pub fn clean_line(runs: &[FamilyRun]) -> String {
+    let clean: Vec<&FamilyRun> = runs.iter().filter(|r| r.planted == "clean").collect();
+    let named: Vec<&&FamilyRun> = clean.iter().filter(|r| r.named != "none").collect();
+    let short = named
+        .iter()
+        .filter(|r| r.oracle.as_ref().is_some_and(|o| o.identifiable))
+        .count();
+    format!(
+        "clean plants with a finding: {} of {} ({:.1} %); of them {short} on a model whose plant's order is identifiable against it (a finding about the model)",
+        named.len(),
+        clean.len(),
+        100.0 * named.len() as f64 / clean.len().max(1) as f64
+    )
 }
