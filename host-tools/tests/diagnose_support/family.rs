@@ -230,7 +230,8 @@ fn at_order(sp: &mut Spec, o: usize) {
 
 /// The oracle of `case` against the user's `model` ([`Oracle`]), in `mode`; for a clean
 /// plant only when the model's order is not the plant's (the plant's order is then the
-/// oracle), else None. The refit is the diagnosis's own ([`fit_spec`], the user's `fit` record extended).
+/// oracle), else None. The refit is the diagnosis's own ([`fit_spec`], the user's `fit`
+/// record extended).
 pub fn oracle(case: &FamilyCase, model: &ModelFile, mode: Mode) -> Option<Oracle> {
     let mut notes = Vec::new();
     let user = Spec::from_model(model, &mut notes).ok()?;
@@ -778,9 +779,9 @@ impl std::fmt::Display for Ratio {
     }
 }
 
-/// Per planted effect (clean plants apart: [`clean_line`]): the raw recall, the plants whose oracle
-/// is [`identifiable`], the recall among them, and each missed identifiable plant's oracle
-/// ratio against the ratio achieved, as a markdown table (printed after [`matrix`]).
+/// Per planted effect (clean plants apart: [`clean_line`]): the raw recall, the plants whose
+/// oracle is [`identifiable`], the recall among them, and each missed identifiable plant's
+/// oracle ratio against the ratio achieved, as a markdown table (printed after [`matrix`]).
 pub fn identifiable_table(runs: &[FamilyRun]) -> String {
     let mut by: BTreeMap<String, Vec<&FamilyRun>> = BTreeMap::new();
     for r in runs.iter().filter(|r| r.planted != "clean") {
