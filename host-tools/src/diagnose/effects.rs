@@ -742,12 +742,12 @@ pub struct Finding {
     pub explained: f64,
     /// The residual it is scored on: "free-run" or "one-step".
     pub residual: &'static str,
-    /// Batch-means t statistic of the per-batch log ratios (descriptive beside `p_value` on a
-    /// long record; on a short one the statistic of the pooled t test).
+    /// Batch-means t statistic of the per-batch log ratios (descriptive beside `p_value`; on
+    /// a short record that of all folds' batches pooled).
     pub t: f64,
     /// One-sided p-value of the full-data test: the signed-rank test of the held-out batch log
-    /// ratios ([`crate::significance::Comparison`]), or on a short record the pooled t test
-    /// ([`super::replicate::pooled_p`]).
+    /// ratios ([`crate::significance::Comparison`]), or on a short record the same test of
+    /// all folds' batches pooled ([`super::replicate::pooled_p`]).
     pub p_value: f64,
     /// Above the noise threshold.
     pub significant: bool,

@@ -18,17 +18,21 @@
 //! held-out record is one block, the training data are cut into 4, and each training block is
 //! scored by the variant refit on the other blocks and the held-out record, against the null
 //! structure refit on the same rows ([`cross_fold`]; free run from an estimated initial state,
-//! like the held-out score). The batch log ratios of all 5 folds are pooled in one t test at
+//! like the held-out score). The batch log ratios of all 5 folds are pooled in one test at
 //! the Bonferroni level ([`pooled_p`]) and the replication is the folds' agreement: all but
 //! one explain part of the null's error on their block ([`cv_agree`]). Each fold fits on 4/5
 //! of the record; the two half-record folds this replaced fit on 1/2, and on the tanks a
 //! linear model with an offset fitted on one half extrapolated to the other at -793 % and
-//! -127 % (the first half holds the training rows' only overflow at 10 V). A fold whose block holds
-//! levels its fit never saw still counts in the pooled test: the final model meets such levels
-//! too. Measured on the tanks (step 1): Lur'e sin(0.50 y1) explains 65.6 % held out and 56, 74,
-//! 88 and 95 % on the training blocks, pooled p = 3.2e-8 (the half folds: 93.8 % and -11.7 %,
-//! p = 2.3e-3); output-offset explains 65, 33, -1515 and 52 %, pooled p = 0.23 (on rows
-//! 409-614, the record's lowest levels, 2.9-6.2 V, no overflow, the offset refit is far off).
+//! -127 % (the first half holds the training rows' only overflow at 10 V). A fold whose block
+//! holds levels its fit never saw still counts in the pooled test: the final model meets such
+//! levels too. Measured on the tanks (step 1, with the pooled t test of the time): Lur'e
+//! sin(0.50 y1) explains 65.6 % held out and 56, 74, 88 and 95 % on the training blocks,
+//! pooled p = 3.2e-8 (the half folds: 93.8 % and -11.7 %, p = 2.3e-3); output-offset explains
+//! 65, 33, -1515 and 52 %, pooled p = 0.23 (on rows 409-614, the record's lowest levels,
+//! 2.9-6.2 V, no overflow, the offset refit is far off). The pooled test is the signed-rank
+//! test of every other held-out comparison since the forty-sixth session: the t test of the
+//! batches' mean let one far-off fold outweigh the others by its magnitude (the tanks from
+//! three states, docs/bench-diagnose.md).
 
 use super::effects::{
     beats_user, held_out_mse, score, score_parts, significant, versus, versus_larger, with_past,
@@ -36,7 +40,6 @@ use super::effects::{
 };
 use super::memory::{judged, Basis};
 use super::refit::Spec;
-use super::stats::t_sf;
 use crate::data::Dataset;
 use crate::model::{Factor, ModelFile};
 use crate::significance::mean_t;
@@ -696,7 +699,8 @@ pub fn cv_folds(train: &Dataset, val: &Dataset) -> Vec<(Dataset, Dataset)> {
 /// same set (`nulls[j]`: the null refit of fold j evaluated on its left-out block; a
 /// candidate with its own null structure refits that inside [`score`]). Each fold scores
 /// data its fit never saw, so its batch log ratios can be pooled with the held-out ones in
-/// one t test ([`pooled_p`]), and the folds' agreement is the replication ([`cv_agree`]).
+/// one signed-rank test ([`pooled_p`]), and the folds' agreement is the replication
+/// ([`cv_agree`]).
 /// A fold whose refit fails or diverges counts as a fold that disagrees (explained = -inf).
 pub fn cross_fold(
     cand: &Candidate,
@@ -730,10 +734,12 @@ pub fn cross_fold(
         .collect()
 }
 
-/// The pooled one-sided t test of the held-out batch log ratios `held` and the folds' (one
-/// test on all batches): (t, p). Every fold counts, also one whose left-out block holds
-/// levels its fit never saw (the record's extremes sit in one block): the final model meets
-/// such levels too. A fold that could not be scored makes the test fail (p = 1).
+/// The pooled one-sided test of the held-out batch log ratios `held` and the folds' (one test
+/// on all batches): the exact signed-rank test every other held-out comparison takes
+/// ([`crate::significance::signed_rank_p`]), with the t of their mean shown beside it: (t, p).
+/// Every fold counts, also one whose left-out block holds levels its fit never saw (the
+/// record's extremes sit in one block): the final model meets such levels too. A fold that
+/// could not be scored makes the test fail (p = 1).
 pub fn pooled_p(held: &[f64], folds: &[Fold]) -> (f64, f64) {
     let all: Vec<f64> = held
         .iter()
@@ -743,8 +749,7 @@ pub fn pooled_p(held: &[f64], folds: &[Fold]) -> (f64, f64) {
     if all.len() < 2 || folds.iter().any(|f| f.ratios.is_empty()) {
         return (0.0, 1.0);
     }
-    let (t, nu) = mean_t(&all);
-    (t, t_sf(t, nu))
+    (mean_t(&all).0, crate::significance::signed_rank_p(&all))
 }
 
 /// The replication of a short record's finding: of the K folds (the held-out score,
@@ -784,6 +789,39 @@ mod tests {
             var_y: vec![1.0],
             skip,
         }
+    }
+
+    /// The short record's pooled test is the signed-rank test of all folds' batches: one fold
+    /// whose few batches are far worse weighs by its ranks, not by its magnitude (the cascaded
+    /// tanks from three states: sin y1's held-out 6 batches and three agreeing folds against
+    /// one at -276 %, where the t test of the mean gave 4.5e-3).
+    #[test]
+    fn the_pooled_test_is_the_signed_rank_test_of_every_batch() {
+        let fold = |ratios: Vec<f64>| Fold {
+            explained: 0.5,
+            p_value: 0.01,
+            ratios,
+        };
+        let held = vec![0.4; 6];
+        let folds = [fold(vec![0.3; 8]), fold(vec![0.5; 8]), fold(vec![-3.0; 2])];
+        let (t, p) = pooled_p(&held, &folds);
+        let all: Vec<f64> = held
+            .iter()
+            .chain(folds.iter().flat_map(|f| f.ratios.iter()))
+            .copied()
+            .collect();
+        assert_eq!(p, crate::significance::signed_rank_p(&all));
+        assert_eq!(t, mean_t(&all).0);
+        // 22 batches up, 2 down by the largest magnitude: W- = 23 + 24 = 47 of 300
+        assert!(p < 1e-3, "{p}");
+        // the t test of the same mean is pulled down by the two
+        let (_, nu) = mean_t(&all);
+        assert!(super::super::stats::t_sf(t, nu) > 0.1);
+        // a fold that could not be scored fails the test
+        assert_eq!(
+            pooled_p(&held, &[fold(vec![0.3; 8]), fold(vec![])]),
+            (0.0, 1.0)
+        );
     }
 
     /// A record of one scheduling column `p1` (and a constant input).
