@@ -87,11 +87,9 @@ impl FamilyCase {
         self.val
             .write_csv(&base.with_extension("val.csv"))
             .map_err(text)?;
-        std::fs::write(
-            base.with_extension("args"),
-            self.pbsid_args.join(" ") + "\n",
-        )
-        .map_err(|e| format!("{}: {e}", base.with_extension("args").display()))
+        let args = base.with_extension("args");
+        std::fs::write(&args, self.pbsid_args.join(" ") + "\n")
+            .map_err(|e| format!("{}: {e}", args.display()))
     }
 }
 
