@@ -173,7 +173,9 @@ fn clean_plants(seeds: Vec<u64>) {
                 if f.significant {
                     assert_eq!(r.applied.len(), 1);
                 } else {
-                    assert!(r.applied.is_empty() && r.after.is_none());
+                    // no fix; a score after only when the estimate was refined
+                    assert!(r.applied.is_empty());
+                    assert_eq!(r.after.is_some(), r.refined.is_some());
                     assert!(r.stopped.contains("nothing explains"), "{}", r.stopped);
                 }
                 results.lock().unwrap().push((

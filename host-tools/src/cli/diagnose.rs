@@ -165,14 +165,14 @@ pub(super) fn run(a: &DiagnoseArgs, ui: Ui, out: &mut dyn Write) -> Result<(), C
     for w in warnings.iter().rev() {
         res.report.notes.insert(0, format!("warning: {w}"));
     }
-    if !res.report.applied.is_empty() {
+    if res.report.changed() {
         if let serde_json::Value::Object(m) = &mut res.model.fit {
             m.insert("train".into(), train_file.record());
         }
     }
     let mut outputs = Outputs::default();
     if let Some(p) = &a.out {
-        if res.report.applied.is_empty() {
+        if !res.report.changed() {
             // nothing to add: the model is written unchanged so that scripts find the file
             outputs.model(&model, p)?;
         } else {

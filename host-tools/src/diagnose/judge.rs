@@ -30,6 +30,7 @@ use super::residual::{ResidualReport, ALPHA};
 use super::{catalogue, encompass, output, replicate, states};
 use super::{fit_eval, fit_eval_order, mean_vaf, mode_name};
 use crate::data::Dataset;
+use crate::model::ModelFile;
 use crate::simulate::Mode;
 
 /// (explained, p): a head-to-head comparison of held-out errors ([`effects::versus`]).
@@ -117,7 +118,10 @@ pub(crate) struct Judgement {
 /// Judge every effect's best variant of one step by the rules of a finding (module docs).
 /// Returns the judgements, one per effect with a significant variant, and whether the record
 /// was judged as a short one (blocked cross-validation, [`replicate::short_record`]).
-pub(crate) fn judge(b: &Bench<'_>, notes: &mut Vec<String>) -> (Vec<Judgement>, bool) {
+pub(crate) fn judge(
+    b: &Bench<'_>,
+    notes: &mut Vec<String>,
+) -> (Vec<Judgement>, bool, Option<RefinedEstimate>) {
     let scored = b.scored;
     let best = effects::best_variants(scored, b.tried);
     let mut js: Vec<Judgement> = best
@@ -160,16 +164,36 @@ pub(crate) fn judge(b: &Bench<'_>, notes: &mut Vec<String>) -> (Vec<Judgement>, 
             }
         }
     }
-    // when the refined structure was fitted and predicts much better than the refit, say so
-    if let Some(n) = refs
+    // when the refined structure was fitted and predicts much better than the refit, say so;
+    // with `--fix` and no finding it is what the diagnosis writes (`super::fix_steps`)
+    let refined = refs
         .refined
-        .get()
-        .and_then(Option::as_ref)
-        .and_then(|r| states::refined_note(b.base_eval, r, b.tried))
-    {
-        notes.push(n);
-    }
-    (js, short)
+        .into_inner()
+        .flatten()
+        .and_then(|(model, eval)| {
+            let (explained, p_value) = states::refined_gain(b.base_eval, &eval, b.tried)?;
+            notes.push(states::refined_note(explained, p_value, &eval, b.base_eval));
+            Some(RefinedEstimate {
+                model,
+                eval,
+                explained,
+                p_value,
+            })
+        });
+    (js, short, refined)
+}
+
+/// The model's own structure refined by output error when it predicts the held-out record
+/// significantly better than the structure's subspace refit ([`states::refined_gain`]).
+pub(crate) struct RefinedEstimate {
+    /// The refined model.
+    pub model: ModelFile,
+    /// Its held-out evaluation.
+    pub eval: Eval,
+    /// Fraction of the refit's held-out free-run error it explains.
+    pub explained: f64,
+    /// The p-value of that comparison.
+    pub p_value: f64,
 }
 
 /// A short record's test: each variant that could be a finding refit on the cross-validation
@@ -266,6 +290,11 @@ fn replicate_on_halves<'b>(
 impl References {
     /// The model's structure refined by output error, fitted when a rule first needs it.
     fn refined(&self, b: &Bench<'_>) -> Option<&Eval> {
+        self.refined_fit(b).map(|(_, e)| e)
+    }
+
+    /// [`Self::refined`] with its model.
+    fn refined_fit(&self, b: &Bench<'_>) -> Option<&(ModelFile, Eval)> {
         self.refined
             .get_or_init(|| {
                 let key = effects::refined_null(b.spec).key();
@@ -275,7 +304,8 @@ impl References {
                     .find(|n| n.key == key)
                     .map(|n| &n.fitted.model);
                 let m = output::refined_structure(b.spec, b.scored, b.train, b.fit, fitted)?;
-                Eval::new(&m, b.val).ok()
+                let e = Eval::new(&m, b.val).ok()?;
+                Some((m, e))
             })
             .as_ref()
     }
@@ -287,8 +317,8 @@ struct References {
     base_memory: Memory,
     /// The model's structure with a larger past window, refined by output error.
     larger_refined: OnceCell<Option<Eval>>,
-    /// The model's structure refined by output error.
-    refined: OnceCell<Option<Eval>>,
+    /// The model's structure refined by output error, and its held-out evaluation.
+    refined: OnceCell<Option<(ModelFile, Eval)>>,
 }
 
 /// A second chance for an effect whose judged variant replicated but failed a later rule

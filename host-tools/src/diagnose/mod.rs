@@ -108,6 +108,28 @@ pub struct Applied {
     pub vaf_after: f64,
 }
 
+/// The model's own structure refined by output error, written by `--fix` when nothing is
+/// missing from the structure but its subspace estimate is biased (the last step's
+/// [`states::refined_gain`]): the structure is kept, its estimate refined, as `lpvid pbsid
+/// --refine` does.
+#[derive(Debug, Clone, Serialize)]
+pub struct RefinedFix {
+    /// 1-based step whose structure was refined.
+    pub step: usize,
+    /// Fraction of the held-out free-run error of the structure's refit it explains.
+    pub explained: f64,
+    /// The p-value of that comparison (the level of a finding at that step).
+    pub p_value: f64,
+    /// Normalised held-out free-run MSE (mean over outputs of MSE / var y) before.
+    pub mse_before: f64,
+    /// ... and after.
+    pub mse_after: f64,
+    /// Mean free-run VAF before.
+    pub vaf_before: f64,
+    /// ... and after.
+    pub vaf_after: f64,
+}
+
 /// The diagnosis of one step (the model as it stood then).
 #[derive(Debug, Clone, Serialize)]
 pub struct Step {
@@ -183,7 +205,8 @@ pub struct Report {
     pub before: Score,
     /// ... one-step prediction.
     pub before_one_step: Score,
-    /// After the fixes (None without --fix or when nothing was applied).
+    /// After the fixes (None without --fix or when the model was not changed:
+    /// [`Report::changed`]).
     pub after: Option<Score>,
     /// ... one-step prediction.
     pub after_one_step: Option<Score>,
@@ -191,6 +214,10 @@ pub struct Report {
     pub findings: Vec<Finding>,
     /// Fixes applied, in order.
     pub applied: Vec<Applied>,
+    /// With `--fix`, when no effect explains the residual of the last step's structure but
+    /// that structure refined by output error predicts the held-out record significantly
+    /// better: the refined structure is the model written ([`RefinedFix`]).
+    pub refined: Option<RefinedFix>,
     /// Every step's diagnosis.
     pub steps: Vec<Step>,
     /// Why the loop stopped.
@@ -208,6 +235,14 @@ pub struct Report {
     pub refit_all: Option<RefitAll>,
 }
 
+impl Report {
+    /// Whether the diagnosis changed the model: a fix applied, or the structure's estimate
+    /// refined ([`Report::refined`]).
+    pub fn changed(&self) -> bool {
+        !self.applied.is_empty() || self.refined.is_some()
+    }
+}
+
 /// The final refit on the whole record ([`refit_on_all`]).
 #[derive(Debug, Clone, Serialize)]
 pub struct RefitAll {
@@ -223,11 +258,11 @@ pub struct RefitAll {
 pub struct Outcome {
     /// The report.
     pub report: Report,
-    /// The final model (the given one when nothing was applied).
+    /// The final model (the given one when it was not changed: [`Report::changed`]).
     pub model: ModelFile,
     /// Evaluation of the given model on validation data.
     pub before_eval: Eval,
-    /// Evaluation of the final model (when something was applied).
+    /// Evaluation of the final model (when it was changed).
     pub after_eval: Option<Eval>,
     /// Singular values of the first null refit and of the final model's fit.
     pub singular_values: (Vec<f64>, Vec<f64>),
@@ -423,6 +458,7 @@ pub fn diagnose_with_progress(
         model: model.clone(),
         steps: Vec::new(),
         applied: Vec::new(),
+        refined: None,
         stopped: String::new(),
         notes,
     };
@@ -452,10 +488,11 @@ pub fn diagnose_with_progress(
         model: current,
         steps,
         applied,
+        refined,
         stopped,
         notes,
     } = trail;
-    let (after, after_one_step, after_eval) = if applied.is_empty() {
+    let (after, after_one_step, after_eval) = if applied.is_empty() && refined.is_none() {
         (None, None, None)
     } else {
         (
@@ -479,6 +516,7 @@ pub fn diagnose_with_progress(
             .map(|s| s.findings.clone())
             .unwrap_or_default(),
         applied,
+        refined,
         steps,
         stopped,
         threshold: threshold(),
@@ -505,6 +543,7 @@ struct Trail {
     model: ModelFile,
     steps: Vec<Step>,
     applied: Vec<Applied>,
+    refined: Option<RefinedFix>,
     stopped: String,
     notes: Vec<String>,
 }
@@ -543,7 +582,7 @@ fn fix_steps(
         } else {
             residual_reports(&base_eval, val)
         };
-        let (step, top) = diagnose_step(
+        let Diagnosed { step, top, refined } = diagnose_step(
             step_no,
             &spec,
             &base,
@@ -560,6 +599,33 @@ fn fix_steps(
             Ok(s) => s,
             Err(why) => {
                 trail.stopped = why;
+                // nothing is missing from the structure, but its estimate is biased: the
+                // structure refined by output error is the fix
+                if let Some(r) = refined.filter(|_| opts.fix) {
+                    let (mse_before, vaf_before) = if step_no == 1 {
+                        (before_eval.mse(Mode::FreeRun), before.vaf_mean)
+                    } else {
+                        (base_eval.mse(Mode::FreeRun), mean_vaf(&base_eval))
+                    };
+                    let fix = RefinedFix {
+                        step: step_no,
+                        explained: r.explained,
+                        p_value: r.p_value,
+                        mse_before,
+                        mse_after: r.eval.mse(Mode::FreeRun),
+                        vaf_before,
+                        vaf_after: mean_vaf(&r.eval),
+                    };
+                    let mut model = with_provenance(r.model, &given, &trail.applied);
+                    if let serde_json::Value::Object(m) = &mut model.fit {
+                        m.insert(
+                            "refined_by_diagnose".into(),
+                            serde_json::json!({"step": fix.step, "explained": fix.explained, "p_value": fix.p_value}),
+                        );
+                    }
+                    trail.model = model;
+                    trail.refined = Some(fix);
+                }
                 break;
             }
         };
@@ -772,9 +838,19 @@ fn arx_residual(sig: &crate::lpvss::Signals, lags: usize) -> Option<nalgebra::DM
 }
 
 /// One step of the diagnosis: the candidates of the catalogue for the model's structure
+/// What [`diagnose_step`] returns.
+struct Diagnosed {
+    /// The step's record.
+    step: Step,
+    /// Its first finding's variant, or why there is none (the stop line).
+    top: Result<Scored, String>,
+    /// The structure refined by output error, when it predicts significantly better.
+    refined: Option<judge::RefinedEstimate>,
+}
+
 /// `spec` (fitted as `base`, evaluated on the held-out data as `base_eval`) refit and scored,
-/// judged by the rules of a finding ([`judge`]) and ranked. Returns the step's record and
-/// its first finding's variant, or why there is none (the stop line).
+/// judged by the rules of a finding ([`judge`]) and ranked. Returns the step's record,
+/// its first finding's variant (or why there is none) and the refined structure ([`Diagnosed`]).
 #[allow(clippy::too_many_arguments)]
 fn diagnose_step(
     step_no: usize,
@@ -785,7 +861,7 @@ fn diagnose_step(
     (train, val, fit): (&Dataset, &Dataset, &serde_json::Value),
     (threads, progress): (usize, Option<Progress<'_>>),
     notes: &mut Vec<String>,
-) -> Result<(Step, Result<Scored, String>), DiagnoseError> {
+) -> Result<Diagnosed, DiagnoseError> {
     let train_sig = base.model.signals.evaluate(train)?;
     // through the model's own-output feedback, if any
     let train_fb = base.model.signals.feedback(train)?;
@@ -840,7 +916,7 @@ fn diagnose_step(
         larger_eval,
         nulls: &nulls,
     };
-    let (judgements, short) = judge::judge(&bench, notes);
+    let (judgements, short, refined) = judge::judge(&bench, notes);
     // a noise model cannot explain the part of the residual an input-driven effect does;
     // that part as a fraction of coloured-noise's null, the model's structure refit (a
     // variant judged against its own null, e.g. refined, by what it explains of that
@@ -925,13 +1001,21 @@ fn diagnose_step(
             ),
             None => "no candidate effect applies to this model".into(),
         };
-        return Ok((step, Err(stopped)));
+        return Ok(Diagnosed {
+            step,
+            top: Err(stopped),
+            refined,
+        });
     };
     let top = scored
         .into_iter()
         .nth(i)
         .expect("index of a scored variant");
-    Ok((step, Ok(top)))
+    Ok(Diagnosed {
+        step,
+        top: Ok(top),
+        refined,
+    })
 }
 
 /// Select on held-out data, then refit on everything: when the held-out record was carved
@@ -951,7 +1035,7 @@ pub fn refit_on_all(
     train: &Dataset,
     val: &Dataset,
 ) -> Result<(), DiagnoseError> {
-    if outcome.report.applied.is_empty() {
+    if !outcome.report.changed() {
         return Ok(());
     }
     let all = replicate::concat(&[train, val], format!("{} + {}", train.source, val.source))
@@ -964,13 +1048,19 @@ pub fn refit_on_all(
             )
         })?;
     let mut notes = Vec::new();
-    let spec = Spec::from_model(&outcome.model, &mut notes)?;
+    let mut spec = Spec::from_model(&outcome.model, &mut notes)?;
+    if outcome.report.refined.is_some() {
+        // the structure refined by output error was chosen: refined again on all rows
+        spec = effects::refined_null(&spec);
+    }
     let mut fitted = fit_spec(&spec, &all, &outcome.model.fit)?.model;
     // provenance: the diagnose history of the selected model
-    if let (Some(h), serde_json::Value::Object(m)) =
-        (outcome.model.fit.get("diagnose").cloned(), &mut fitted.fit)
-    {
-        m.insert("diagnose".into(), h);
+    if let serde_json::Value::Object(m) = &mut fitted.fit {
+        for key in ["diagnose", "refined_by_diagnose"] {
+            if let Some(h) = outcome.model.fit.get(key) {
+                m.insert(key.into(), h.clone());
+            }
+        }
     }
     let x0 = X0::Estimate {
         samples: effects::x0_samples(val.len()),

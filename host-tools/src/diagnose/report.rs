@@ -234,6 +234,20 @@ pub fn summary(r: &Report, plots: &[PathBuf]) -> String {
             );
         }
     }
+    if let Some(f) = &r.refined {
+        let _ = writeln!(
+            s,
+            "Refined: no effect is a finding at step {}, but the structure's subspace estimate is biased: the structure refined by output error (as `lpvid pbsid --refine` does) explains {:.1} % of the held-out free-run error of its refit (p = {:.1e}) and is the model written. Held-out free-run MSE/var(y) {:.4e} -> {:.4e} ({:.1}x lower), mean VAF {:.2} % -> {:.2} %.",
+            f.step,
+            100.0 * f.explained,
+            f.p_value,
+            f.mse_before,
+            f.mse_after,
+            f.mse_before / f.mse_after.max(1e-300),
+            f.vaf_before,
+            f.vaf_after
+        );
+    }
     if let (Some(af), Some(ao)) = (&r.after, &r.after_one_step) {
         let _ = writeln!(
             s,

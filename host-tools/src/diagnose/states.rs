@@ -10,22 +10,26 @@ use super::refit::Spec;
 use super::residual::ALPHA;
 use crate::simulate::Mode;
 
-/// A note for the report when the model's own structure refined by output error
-/// ([`refined_null`], `refined`) predicts the held-out record significantly better than its
-/// subspace refit (`base`; [`significant`] at `tried` variants): the model's deficiency is its
-/// estimate, not a missing effect. On the family's clean plant 37000 (past window 7, the cap
-/// of a scheduled plant) the refined structure explains 99.7 % of the refit's free-run error,
-/// a past window of 9 95.5 % (named order-too-low at 18.65x before [`states_check`]).
-pub fn refined_note(base: &Eval, refined: &Eval, tried: usize) -> Option<String> {
+/// Whether the model's own structure refined by output error ([`refined_null`], `refined`)
+/// predicts the held-out record significantly better than its subspace refit (`base`;
+/// [`significant`] at `tried` variants): the model's deficiency is then its estimate, not a
+/// missing effect. Returns the fraction of the refit's free-run error it explains and the
+/// p-value. On the family's clean plant 37000 (past window 7, the cap of a scheduled plant)
+/// the refined structure explains 99.7 % of the refit's free-run error, a past window of 9
+/// 95.5 % (named order-too-low at 18.65x before [`states_check`]).
+pub fn refined_gain(base: &Eval, refined: &Eval, tried: usize) -> Option<(f64, f64)> {
     let (explained, p) = versus_larger(&base.loss(Mode::FreeRun), &refined.loss(Mode::FreeRun))?;
-    significant(explained, p, tried).then(|| {
-        format!(
-            "the model's own structure refined by output error (lpvid pbsid --refine) explains {:.1} % of the held-out free-run error of its refit (p = {p:.1e}; normalised error {:.3e} against {:.3e}): the subspace estimate of the structure is biased; what the refined structure also removes is not named as a missing effect",
-            100.0 * explained,
-            refined.mse(Mode::FreeRun),
-            base.mse(Mode::FreeRun)
-        )
-    })
+    significant(explained, p, tried).then_some((explained, p))
+}
+
+/// The report's note on a [`refined_gain`].
+pub fn refined_note(explained: f64, p: f64, refined: &Eval, base: &Eval) -> String {
+    format!(
+        "the model's own structure refined by output error (lpvid pbsid --refine) explains {:.1} % of the held-out free-run error of its refit (p = {p:.1e}; normalised error {:.3e} against {:.3e}): the subspace estimate of the structure is biased; what the refined structure also removes is not named as a missing effect",
+        100.0 * explained,
+        refined.mse(Mode::FreeRun),
+        base.mse(Mode::FreeRun)
+    )
 }
 
 /// The verdict of [`states_check`] on a `coloured-noise`, `order-too-low` or `input-delay` finding: whether it

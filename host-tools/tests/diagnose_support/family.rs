@@ -31,7 +31,8 @@ pub struct FamilyRun {
     /// nothing was named).
     pub detail: String,
     /// Held-out error (free-run MSE; one-step for a noise model) before / after --fix
-    /// (1 when nothing was applied).
+    /// (the free run when no effect was applied but the estimate was refined; 1 when the
+    /// model was not changed).
     pub ratio: f64,
     /// What was drawn.
     pub description: String,
@@ -627,6 +628,11 @@ pub fn run_one_profiled(
                 Mode::FreeRun
             };
             mse(&model, &case.val, mode) / mse(&out.model, &case.val, mode).max(1e-300)
+        }
+        // no effect, the structure's estimate refined (report.refined): free run
+        None if r.refined.is_some() => {
+            mse(&model, &case.val, Mode::FreeRun)
+                / mse(&out.model, &case.val, Mode::FreeRun).max(1e-300)
         }
         None => 1.0,
     };

@@ -590,8 +590,11 @@ class Report:
     """What ``lpvid diagnose`` reports: ``findings`` (:class:`Finding`), ``applied``
     (the fixes made, as :class:`Finding` with ``vaf_before`` / ``vaf_after`` in ``raw``),
     ``before`` / ``after`` (:class:`Score` on the validation data, free run),
-    ``before_one_step`` / ``after_one_step``, ``model`` (the final :class:`Model`: the
-    given one when nothing was applied), ``text`` (the command line's summary)."""
+    ``before_one_step`` / ``after_one_step``, ``refined`` (with ``fix``, when no effect
+    was missing but the structure refined by output error predicts better: its ``step``,
+    ``explained``, ``p_value``, ``mse_before`` / ``mse_after``; else None), ``model`` (the
+    final :class:`Model`: the given one when nothing changed), ``text`` (the command
+    line's summary)."""
 
     def __init__(self, model: Model, report: Mapping[str, Any], text: str):
         self.raw = dict(report)
@@ -599,6 +602,7 @@ class Report:
         self.text = text
         self.findings = [Finding(f) for f in report.get("findings", [])]
         self.applied = [Finding(a) for a in report.get("applied", [])]
+        self.refined: Optional[Dict[str, Any]] = report.get("refined")
         sc = lambda k: Score(report[k]) if report.get(k) else None  # noqa: E731
         self.before: Score = sc("before")
         self.after: Optional[Score] = sc("after")
