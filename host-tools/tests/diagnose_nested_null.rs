@@ -70,3 +70,54 @@ fn a_nested_candidate_fitted_from_its_null_s_fit_is_the_same_fit() {
     }
     assert!(moved > 0, "the fit given is used");
 }
+
+/// A delayed input channel nested in a null that has fewer channels: the structure of a later
+/// step carries a channel an earlier fix added beyond the null that fix was nested in. On
+/// the EMPS benchmark (q_ref added at step 1, nested in the structure [u1] refined) every
+/// step-2 variant delaying u1 failed with "a nested refinement adds input channels after
+/// the null's or delays one of them". Here the family's input-delay plant 240105 (dead time
+/// 5): u1(k-5) in place of u1 with u1^2 added after, nested in the user's structure [u1]
+/// refined, fits, and its training free-run error is far below that null's (the dead time
+/// is the plant's).
+#[test]
+fn a_delayed_channel_nests_in_a_null_with_fewer_channels() {
+    let case = family_case("input-delay", 240105, 1500).unwrap();
+    let dir = tempfile::tempdir().unwrap();
+    let tp = dir.path().join("train.csv");
+    case.train.write_csv(&tp).unwrap();
+    let mp = dir.path().join("m.json");
+    let mut args: Vec<String> = vec!["lpvid".into(), "pbsid".into(), "--train".into()];
+    args.push(tp.to_str().unwrap().into());
+    args.extend(case.pbsid_args.iter().cloned());
+    args.extend(["--out".to_string(), mp.to_str().unwrap().to_string()]);
+    run(args, &mut Vec::new()).unwrap();
+    let model = ModelFile::read(&mp).unwrap();
+    let spec = Spec::from_model(&model, &mut vec![]).unwrap();
+    assert_eq!(spec.signals.inputs.len(), 1);
+    let null = refined_null(&spec);
+    let null_fit = fit_spec(&null, &case.train, &model.fit).unwrap();
+    let mut sp = spec.clone();
+    sp.signals.inputs[0] = vec![Factor {
+        delay: 5,
+        ..Factor::col("u1")
+    }];
+    sp.signals.inputs.push(vec![Factor {
+        pow: 2.0,
+        ..Factor::col("u1")
+    }]);
+    sp.nested_in = Some(Box::new(null.clone()));
+    let fitted = fit_spec_on(&sp, &case.train, &model.fit, Some(&null_fit)).unwrap();
+    assert_eq!(fitted.model.signals.inputs.len(), 2);
+    assert!(fitted.model.fit.get("nested_refinement").is_some());
+    let vaf = |m: &ModelFile| {
+        lpvid_host::simulate::score(m, &case.train, lpvid_host::simulate::Mode::FreeRun)
+            .unwrap()
+            .vaf_mean
+    };
+    let (v_null, v_delayed) = (vaf(&null_fit.model), vaf(&fitted.model));
+    println!("training free-run VAF: null {v_null:.2} %, u1(k-5) with u1^2 {v_delayed:.2} %");
+    assert!(
+        v_delayed > v_null + 5.0 && v_delayed > 90.0,
+        "{v_null} {v_delayed}"
+    );
+}

@@ -684,7 +684,8 @@ impl Refinement {
 /// A plain input channel replaced by the same column delayed (input-delay) is refined the
 /// same way, from the null's model read with the delayed channel and from its own PBSID
 /// estimate: the same coefficients as the null, so no more flexible than it, and not nested
-/// (it may fit the training data worse than the null).
+/// (it may fit the training data worse than the null); channels added after the null's are
+/// started at zero as above.
 pub fn fit_nested(
     spec: &Spec,
     null: &Spec,
@@ -705,14 +706,15 @@ pub fn fit_nested(
         ));
     }
     let (inputs, inputs0) = (spec.signals.inputs.len(), null.signals.inputs.len());
-    // a channel replaced (the same channels, one delayed: input-delay) keeps the null's
-    // shapes; its start is the null's model read with the replaced channel, which may fit
-    // the training data worse than the null: the one form not nested
-    let replaced = inputs == inputs0
-        && spec.signals.inputs != null.signals.inputs
-        && spec
-            .signals
-            .inputs
+    // a channel replaced (the null's channels, one delayed: input-delay; any added after)
+    // keeps the null's shapes; its start is the null's model read with the replaced
+    // channel, which may fit the training data worse than the null: the one form not
+    // nested. Channels added after: a later step's structure, which carries the channel an
+    // earlier fix added beyond the null it was nested in (EMPS: q_ref added at step 1, then
+    // u1 delayed at step 2)
+    let replaced = inputs >= inputs0
+        && spec.signals.inputs[..inputs0] != null.signals.inputs[..]
+        && spec.signals.inputs[..inputs0]
             .iter()
             .zip(&null.signals.inputs)
             .all(|(a, b)| {
