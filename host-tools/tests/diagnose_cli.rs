@@ -217,7 +217,13 @@ fn nothing_applied_says_why_per_candidate_as_the_json() {
         }
         checked += 1;
         assert!(!note.contains("Added: "), "{note}");
-        assert!(json["after"].is_null());
+        // a score after only when the structure's estimate was refined (report.refined)
+        assert_eq!(json["after"].is_null(), json["refined"].is_null());
+        assert_eq!(
+            note.contains("Refined: "),
+            !json["refined"].is_null(),
+            "{note}"
+        );
         let stopped = json["stopped"].as_str().unwrap();
         assert!(note.contains(&format!("Stopped: {stopped}.")), "{note}");
         let findings = json["steps"][0]["findings"].as_array().unwrap();

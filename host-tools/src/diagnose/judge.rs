@@ -164,6 +164,11 @@ pub(crate) fn judge(
             }
         }
     }
+    // no finding on a structure fitted by PBSID alone: its refinement by output error is
+    // fitted now if no rule needed it, since a biased estimate is then what is left to fix
+    if !js.iter().any(|j| j.passed) && !b.spec.fitted_refined() {
+        refs.refined(b);
+    }
     // when the refined structure was fitted and predicts much better than the refit, say so;
     // with `--fix` and no finding it is what the diagnosis writes (`super::fix_steps`)
     let refined = refs
