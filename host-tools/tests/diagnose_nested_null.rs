@@ -10,28 +10,27 @@ use lpvid_host::diagnose::plants::family_case;
 use lpvid_host::diagnose::refit::{fit_spec, fit_spec_on, Spec};
 use lpvid_host::model::{Factor, ModelFile};
 
+/// The model `lpvid pbsid --train T <args>` writes for the records `train`.
+fn pbsid_model(train: &Dataset, args: &[String]) -> ModelFile {
+    let dir = tempfile::tempdir().unwrap();
+    let tp = dir.path().join("train.csv");
+    train.write_csv(&tp).unwrap();
+    let mp = dir.path().join("m.json");
+    let mut cli: Vec<String> = vec!["lpvid".into(), "pbsid".into(), "--train".into()];
+    cli.push(tp.display().to_string());
+    cli.extend(args.iter().cloned());
+    cli.extend(["--out".to_string(), mp.display().to_string()]);
+    run(cli, &mut Vec::new()).unwrap();
+    ModelFile::read(&mp).unwrap()
+}
+
 /// Scheduling-nonlinearity plant 37000 of the family (order 4, p1^2 in A and B): the p1^2
 /// basis and an added input channel u1^2, each nested in the user's structure refined, fitted
 /// from that structure's own fit and from the fit given, are the same model file.
 #[test]
 fn a_nested_candidate_fitted_from_its_null_s_fit_is_the_same_fit() {
     let case = family_case("scheduling-nonlinearity", 37000, 1500).unwrap();
-    let dir = tempfile::tempdir().unwrap();
-    let tp = dir.path().join("train.csv");
-    case.train.write_csv(&tp).unwrap();
-    let mp = dir.path().join("m.json");
-    let args = [
-        "lpvid",
-        "pbsid",
-        "--train",
-        tp.to_str().unwrap(),
-        "--past",
-        "7",
-        "--out",
-        mp.to_str().unwrap(),
-    ];
-    run(args, &mut Vec::new()).unwrap();
-    let model = ModelFile::read(&mp).unwrap();
+    let model = pbsid_model(&case.train, &["--past".into(), "7".into()]);
     let spec = Spec::from_model(&model, &mut vec![]).unwrap();
     let null = refined_null(&spec);
     let null_fit = fit_spec(&null, &case.train, &model.fit).unwrap();
@@ -82,16 +81,7 @@ fn a_nested_candidate_fitted_from_its_null_s_fit_is_the_same_fit() {
 #[test]
 fn a_delayed_channel_nests_in_a_null_with_fewer_channels() {
     let case = family_case("input-delay", 240105, 1500).unwrap();
-    let dir = tempfile::tempdir().unwrap();
-    let tp = dir.path().join("train.csv");
-    case.train.write_csv(&tp).unwrap();
-    let mp = dir.path().join("m.json");
-    let mut args: Vec<String> = vec!["lpvid".into(), "pbsid".into(), "--train".into()];
-    args.push(tp.to_str().unwrap().into());
-    args.extend(case.pbsid_args.iter().cloned());
-    args.extend(["--out".to_string(), mp.to_str().unwrap().to_string()]);
-    run(args, &mut Vec::new()).unwrap();
-    let model = ModelFile::read(&mp).unwrap();
+    let model = pbsid_model(&case.train, &case.pbsid_args);
     let spec = Spec::from_model(&model, &mut vec![]).unwrap();
     assert_eq!(spec.signals.inputs.len(), 1);
     let null = refined_null(&spec);
