@@ -316,3 +316,57 @@ fn a_model_that_runs_away_is_named_in_a_note() {
         assert_eq!(note.contains(&format!("Note: {says}")), runs_away, "{note}");
     }
 }
+
+/// `--fix --out` when no effect is a finding but the structure's estimate is biased: the file
+/// written is the structure refined by output error (`report.refined`), not the model given,
+/// and `validate` scores it as the report's `after` says. The family's input-delay plant
+/// 240107 with the order left to `--order auto` (7 states at past window 7; measured: VAF
+/// 93.43 -> 99.24 %, docs/diagnose-measured.md).
+#[test]
+fn fix_out_writes_the_refined_structure() {
+    let case = lpvid_host::diagnose::plants::family_case("input-delay", 240107, 1500).unwrap();
+    let dir = tempfile::tempdir().unwrap();
+    let p = |n: &str| dir.path().join(n).display().to_string();
+    let (tp, vp, mp, m2, rp) = (
+        p("train.csv"),
+        p("val.csv"),
+        p("m.json"),
+        p("m2.json"),
+        p("r.json"),
+    );
+    case.train.write_csv(std::path::Path::new(&tp)).unwrap();
+    case.val.write_csv(std::path::Path::new(&vp)).unwrap();
+    lpvid(&[
+        "pbsid", "--train", &tp, "--past", "7", "--order", "auto", "--out", &mp,
+    ])
+    .unwrap();
+    let note = lpvid(&[
+        "--quiet", "diagnose", "--model", &mp, "--train", &tp, "--val", &vp, "--fix", "--out", &m2,
+        "--json", &rp,
+    ])
+    .unwrap();
+    let json: Value = serde_json::from_str(&std::fs::read_to_string(&rp).unwrap()).unwrap();
+    assert!(json["applied"].as_array().unwrap().is_empty());
+    let refined = &json["refined"];
+    assert!(refined["explained"].as_f64().unwrap() > 0.5, "{refined}");
+    assert!(note.contains("Refined: "), "{note}");
+    let (given, written) = (
+        ModelFile::read(std::path::Path::new(&mp)).unwrap(),
+        ModelFile::read(std::path::Path::new(&m2)).unwrap(),
+    );
+    assert_eq!(written.signals, given.signals);
+    assert_ne!(written.kind, given.kind);
+    assert!(written.fit.get("refined_by_diagnose").is_some());
+    // validate scores the written model as the report's after
+    let v = lpvid(&[
+        "validate", "--model", &m2, "--data", &vp, "--x0", "estimate", "--json",
+    ])
+    .unwrap();
+    let v: Value = serde_json::from_str(&v).unwrap();
+    let after = json["after"]["vaf_mean"].as_f64().unwrap();
+    let validated = v["score"]["vaf_mean"]
+        .as_f64()
+        .unwrap_or_else(|| panic!("{v}"));
+    assert!((after - validated).abs() < 1e-6, "{after} {validated}");
+    assert!(after > json["before"]["vaf_mean"].as_f64().unwrap() + 3.0);
+}
