@@ -293,13 +293,9 @@ fn replicate_on_halves<'b>(
 }
 
 impl References {
-    /// The model's structure refined by output error, fitted when a rule first needs it.
+    /// The model's structure refined by output error, fitted when a rule first needs it (or
+    /// at the end of a step without a finding, [`judge`]).
     fn refined(&self, b: &Bench<'_>) -> Option<&Eval> {
-        self.refined_fit(b).map(|(_, e)| e)
-    }
-
-    /// [`Self::refined`] with its model.
-    fn refined_fit(&self, b: &Bench<'_>) -> Option<&(ModelFile, Eval)> {
         self.refined
             .get_or_init(|| {
                 let key = effects::refined_null(b.spec).key();
@@ -313,6 +309,7 @@ impl References {
                 Some((m, e))
             })
             .as_ref()
+            .map(|(_, e)| e)
     }
 }
 

@@ -595,6 +595,15 @@ fn fix_steps(
         // what the first finding explained (a noise model's discounted, as ranked)
         let explained = step.findings.first().map(|f| f.explained);
         trail.steps.push(step);
+        // the held-out error and mean VAF a fix of this step starts from: the given model's
+        // at step 1, the structure's as fixed so far after
+        let before_step = |mode: Mode| {
+            if step_no == 1 {
+                (before_eval.mse(mode), before.vaf_mean)
+            } else {
+                (base_eval.mse(mode), mean_vaf(&base_eval))
+            }
+        };
         let s = match top {
             Ok(s) => s,
             Err(why) => {
@@ -602,11 +611,7 @@ fn fix_steps(
                 // nothing is missing from the structure, but its estimate is biased: the
                 // structure refined by output error is the fix
                 if let Some(r) = refined.filter(|_| opts.fix) {
-                    let (mse_before, vaf_before) = if step_no == 1 {
-                        (before_eval.mse(Mode::FreeRun), before.vaf_mean)
-                    } else {
-                        (base_eval.mse(Mode::FreeRun), mean_vaf(&base_eval))
-                    };
+                    let (mse_before, vaf_before) = before_step(Mode::FreeRun);
                     let fix = RefinedFix {
                         step: step_no,
                         explained: r.explained,
@@ -638,11 +643,7 @@ fn fix_steps(
             break;
         };
         let mode = s.cand.effect.metric();
-        let (mse_before, vaf_before) = if step_no == 1 {
-            (before_eval.mse(mode), before.vaf_mean)
-        } else {
-            (base_eval.mse(mode), mean_vaf(&base_eval))
-        };
+        let (mse_before, vaf_before) = before_step(mode);
         trail.applied.push(Applied {
             step: step_no,
             effect: s.cand.effect.name(),
