@@ -1049,11 +1049,9 @@ pub fn refit_on_all(
             )
         })?;
     let mut notes = Vec::new();
-    let mut spec = Spec::from_model(&outcome.model, &mut notes)?;
-    if outcome.report.refined.is_some() {
-        // the structure refined by output error was chosen: refined again on all rows
-        spec = effects::refined_null(&spec);
-    }
+    // a structure refined by output error (the refined fix, a nested refinement) says so in
+    // its record and is refined again on all rows
+    let spec = Spec::from_model(&outcome.model, &mut notes)?;
     let mut fitted = fit_spec(&spec, &all, &outcome.model.fit)?.model;
     // provenance: the diagnose history of the selected model
     if let serde_json::Value::Object(m) = &mut fitted.fit {

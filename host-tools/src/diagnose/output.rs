@@ -452,6 +452,10 @@ pub fn linearised_null(
     crate::refine::keep_k_if_it_predicts(&mut model, &refinement.sig);
     let mut fit = variant.fit.clone();
     if let Value::Object(rec) = &mut fit {
+        // the variant's own-output record is not this structure's: [`refined_mse`] reads the
+        // refinement this fit ended at, and the model no longer feeds its output back
+        rec.remove("output_feedback");
+        rec.insert(super::refit::REFINED_KEY.into(), Value::Bool(true));
         rec.insert(
             "linearised_null".into(),
             json!({

@@ -195,7 +195,9 @@ impl Spec {
     }
 
     /// The refit settings of a model file: its signals and the settings of its `fit`
-    /// record. Missing settings get the `lpvid pbsid` defaults and a note saying so.
+    /// record, refined by output error when the record says the model was ([`REFINED_KEY`],
+    /// or `lpvid pbsid --refine`). Missing settings get the `lpvid pbsid` defaults and a note
+    /// saying so.
     pub fn from_model(model: &ModelFile, notes: &mut Vec<String>) -> Result<Spec, RefitError> {
         let fit = &model.fit;
         match &model.kind {
@@ -314,6 +316,11 @@ impl Spec {
                 {
                     opts.centre = c;
                 }
+                // refined by output error as a whole: by `lpvid pbsid --refine` (its record's
+                // `refine`) or by a refit that says so; an own-output structure always is
+                let refined = !model.signals.has_feedback()
+                    && (fit.get(REFINED_KEY).and_then(Value::as_bool) == Some(true)
+                        || fit.get("refine").is_some_and(Value::is_object));
                 Ok(Spec {
                     signals: model.signals.clone(),
                     opts,
@@ -331,7 +338,7 @@ impl Spec {
                         _ => Noise::Pbsid,
                     },
                     arx: None,
-                    refined: false,
+                    refined,
                     nested_in: None,
                     latent: None,
                 })
@@ -367,6 +374,26 @@ pub fn fit_spec(spec: &Spec, train: &Dataset, base_fit: &Value) -> Result<Fitted
 /// refined through the loop by multiple shooting, and the unbalanced disk's second step
 /// fitted it four times.
 pub fn fit_spec_on(
+    spec: &Spec,
+    train: &Dataset,
+    base_fit: &Value,
+    nested: Option<&Fitted>,
+) -> Result<Fitted, RefitError> {
+    let mut fitted = fit_structure(spec, train, base_fit, nested)?;
+    if let Value::Object(rec) = &mut fitted.model.fit {
+        rec.insert(REFINED_KEY.into(), Value::Bool(spec.fitted_refined()));
+    }
+    Ok(fitted)
+}
+
+/// The key of a `fit` record saying the structure was refined by output error as a whole
+/// after its subspace estimate ([`Spec::fitted_refined`]). [`Spec::from_model`] reads it
+/// back, so a model written refined is refit refined by a later diagnosis: its null is then
+/// the structure the user has, not its subspace estimate.
+pub const REFINED_KEY: &str = "structure_refined";
+
+/// [`fit_spec_on`] without the record of how the structure was fitted.
+fn fit_structure(
     spec: &Spec,
     train: &Dataset,
     base_fit: &Value,
