@@ -9,6 +9,8 @@
 //! `lpvid pbsid` options (`DIR/EFFECT-SEED.train.csv`, `.val.csv`, `.args`) to trace a miss
 //! through the command line; `LPVID_FAMILY_ORDER=auto` lets the user's fit choose its order
 //! (`--order auto`) instead of being given the plant's (not for `order-too-low`);
+//! `LPVID_FAMILY_PAST=P` gives every plant the user's past window P instead of the one drawn
+//! from its slowest pole;
 //! `LPVID_FAMILY_SCHEDULING=operating-points` moves a scheduled plant's p1 between held levels
 //! (`plants::Profile::OperatingPoints`) instead of the drawn signals, and
 //! `LPVID_FAMILY_SCHEDULING=two-signals` gives a scheduled plant a second scheduling signal p2

@@ -481,6 +481,13 @@ fn diagnose_case(case: FamilyCase) -> (ModelFile, lpvid_host::diagnose::Outcome)
     (model, out)
 }
 
+/// The user's `lpvid pbsid` options with past window `p` in place of the drawn one.
+fn set_user_past(case: &mut FamilyCase, p: usize) {
+    if let Some(i) = case.pbsid_args.iter().position(|a| a == "--past") {
+        case.pbsid_args[i + 1] = p.to_string();
+    }
+}
+
 /// The user's `lpvid pbsid` options with `--order auto` in place of the plant's order (a user
 /// who does not know it).
 fn leave_order_to_auto(case: &mut FamilyCase) {
@@ -539,6 +546,14 @@ pub fn run_one_profiled(
     // not know it), instead of the plant's order; order-too-low keeps its order too small
     if std::env::var("LPVID_FAMILY_ORDER").as_deref() == Ok("auto") && effect != "order-too-low" {
         leave_order_to_auto(&mut case);
+    }
+    // LPVID_FAMILY_PAST=P: the user's past window P for every plant (a user who does not
+    // know the plant's slowest pole), instead of the one drawn from it
+    if let Some(p) = std::env::var("LPVID_FAMILY_PAST")
+        .ok()
+        .and_then(|v| v.parse::<usize>().ok())
+    {
+        set_user_past(&mut case, p);
     }
     // LPVID_FAMILY_DUMP=DIR: the case's records and the user's `lpvid pbsid` options as
     // files, so a miss can be traced through the command line (`lpvid pbsid`, `diagnose`)
