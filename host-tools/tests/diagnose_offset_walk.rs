@@ -12,6 +12,7 @@
 
 mod diagnose_support;
 
+use diagnose_support::family::diagnose_one_auto_past;
 use diagnose_support::{normal, stable};
 
 use lpvid_host::data::Dataset;
@@ -116,4 +117,40 @@ fn an_offset_under_order_auto_is_named_output_offset() {
         "output-offset first on {named} of {count}"
     );
     assert_eq!(own_output, 0);
+}
+
+/// Family output-offset plant 241005 (order 1, pole 0.77, affine in p1, an offset of -0.77,
+/// noise 6.3 %), the user's fit at past window 8 with `--order auto` (2 states). A Lur'e
+/// y1^2 with a constant channel (an own-output twin, fitted at 1 state) explained 97.7 % of
+/// the refined structure's held-out error, as the offset did, and was named first (its fit
+/// has fewer coefficients than the offset's at 2 states). Its linearised null could not be
+/// formed (the constant channel reads no output), so the rule that asks an own-output
+/// variant to add to its linear stand-in was skipped. Now its null has the constant channel
+/// (`output::twin_null`): y1^2 adds 0.2 % (p = 0.2) to the offset at its own order, and the
+/// offset is named (measured error ratio 87.9).
+#[test]
+fn an_own_output_twin_must_add_to_the_offset() {
+    let (_, out) = diagnose_one_auto_past("output-offset", 241005, 1500, 8);
+    let r = &out.report;
+    let first = r.findings.first().expect("a finding");
+    println!("first {} ({})", first.effect, first.detail);
+    assert!(
+        first.significant && first.effect == "output-offset",
+        "{first:?}"
+    );
+    let applied = r.applied.first().expect("the offset applied");
+    assert!(applied.mse_before / applied.mse_after > 30.0, "{applied:?}");
+    let twin = r
+        .findings
+        .iter()
+        .find(|f| {
+            f.effect == "output-nonlinearity"
+                && f.detail.ends_with("with a constant input channel []")
+        })
+        .expect("the twin scored");
+    let why = twin.blocked_by.as_deref().unwrap_or_default();
+    assert!(
+        !twin.significant && why.contains("which the offset holds"),
+        "{why}"
+    );
 }

@@ -413,7 +413,8 @@ impl Bench<'_> {
         if j.effect == Effect::OutputNonlinearity {
             j.vs_linearised = s.fitted.as_ref().zip(s.eval.as_ref()).and_then(|(f, e)| {
                 let null = s.cand.null.as_ref().unwrap_or(self.spec);
-                let m = output::linearised_null(&f.model, null, self.train).ok()?;
+                let null = output::twin_null(null, &f.model.signals);
+                let m = output::linearised_null(&f.model, &null, self.train).ok()?;
                 let l = Eval::new(&m, self.val).ok()?;
                 effects::versus_larger(&l.loss(mode), &e.loss(mode))
             });
@@ -719,11 +720,21 @@ impl Judgement {
                 encompass::improvement_needed(b.tried, short)
             )
             } else if let Some(v) = self.vs_linearised.filter(|v| !beaten(Some(*v))) {
-                format!(
-                "the model's own structure refined from this variant's fit, its own-output signals replaced by their best linear stand-ins, removes that error as well: against it this variant explains {:.1} % of the held-out error (p = {:.2e}); what it removed is a local minimum of the structure's refinement, not a dependence on the output level",
-                100.0 * v.0,
-                v.1
-            )
+                let s = &b.scored[self.index];
+                let null = s.cand.null.as_ref().unwrap_or(b.spec);
+                if output::is_twin(&null.signals, &s.cand.spec.signals) {
+                    format!(
+                    "the model's own structure with the constant channel (an offset), refined from this variant's fit with its own-output signals replaced by their best linear stand-ins, removes that error as well: against it this variant explains {:.1} % of the held-out error (p = {:.2e}); its function of the output stood for the output's level, which the offset holds, not for a dependence on the output level",
+                    100.0 * v.0,
+                    v.1
+                )
+                } else {
+                    format!(
+                    "the model's own structure refined from this variant's fit, its own-output signals replaced by their best linear stand-ins, removes that error as well: against it this variant explains {:.1} % of the held-out error (p = {:.2e}); what it removed is a local minimum of the structure's refinement, not a dependence on the output level",
+                    100.0 * v.0,
+                    v.1
+                )
+                }
             } else if let Some(v) = self.vs_without.filter(|v| !beaten(Some(*v))) {
                 format!(
                 "the same fit without its sinusoids (their columns of B and D set to zero, every other coefficient as fitted) does as well: against it the sinusoids explain {:.1} % of the held-out error (p = {:.2e}); what the variant removed is a change in the rest of the estimate that adding two input channels to the refit made, not a periodic disturbance",

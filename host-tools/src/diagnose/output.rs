@@ -141,15 +141,18 @@ pub fn candidates(ctx: &Context<'_>) -> (Vec<(String, Spec)>, Option<String>) {
             if present(&prod) {
                 continue;
             }
-            let mut sp = spec.clone();
-            sp.signals.inputs.push(prod);
             let detail =
                 format!("Lur'e feedback: {name} of the model's own output as an input channel");
             if offset_twins {
-                let mut twin = sp.clone();
+                // the constant channel before f(y): the twin extends the offset structure,
+                // which is its linearised null ([`twin_null`])
+                let mut twin = spec.clone();
                 twin.signals.inputs.push(vec![]);
+                twin.signals.inputs.push(prod.clone());
                 out.push((format!("{detail}, with a constant input channel []"), twin));
             }
+            let mut sp = spec.clone();
+            sp.signals.inputs.push(prod);
             out.push((detail, sp));
         }
         if spec.scheduled_output {
@@ -475,6 +478,32 @@ pub fn linearised_null(
         .check_loops(&model.kind)
         .map_err(|e| RefitError::Numerical(e.to_string()))?;
     Ok(model)
+}
+
+/// The null against which an own-output variant's linearised null is fitted
+/// ([`linearised_null`]): `null`, with the constant input channel of a twin ([`candidates`]:
+/// f(y) with a constant channel the model lacks) added, so the twin is asked whether its f(y)
+/// adds to an offset at its own order, not only to the model's structure. Without it the
+/// twin's linearised null could not be formed (the constant channel reads no output) and the
+/// rule was skipped: on the family's output-offset plants 240102 and 241005 a twin (sin y1 or
+/// y1^2 with a constant) was named first, the only plants of 340 on which a twin was, its
+/// f(y) standing for the offset's level. The variant's channels must start with `null`'s.
+pub fn twin_null(null: &Spec, variant: &crate::model::SignalMap) -> Spec {
+    let mut n = null.clone();
+    if is_twin(&null.signals, variant) {
+        n.signals.inputs.push(vec![]);
+    }
+    n
+}
+
+/// Whether `variant` is an own-output twin of `null`: its first channel beyond `null`'s is a
+/// constant one `null` lacks ([`twin_null`]).
+pub fn is_twin(null: &crate::model::SignalMap, variant: &crate::model::SignalMap) -> bool {
+    !null.inputs.iter().any(Vec::is_empty)
+        && variant
+            .inputs
+            .get(null.inputs.len())
+            .is_some_and(Vec::is_empty)
 }
 
 /// The start of [`linearised_null`]: `variant` (an lpv-ss model whose signals are those of

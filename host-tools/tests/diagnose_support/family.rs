@@ -481,6 +481,20 @@ fn diagnose_case(case: FamilyCase) -> (ModelFile, lpvid_host::diagnose::Outcome)
     (model, out)
 }
 
+/// [`diagnose_one_auto`] with the user's past window `past` in place of the drawn one (what
+/// `LPVID_FAMILY_PAST` does in the family run).
+pub fn diagnose_one_auto_past(
+    effect: &str,
+    seed: u64,
+    n: usize,
+    past: usize,
+) -> (ModelFile, lpvid_host::diagnose::Outcome) {
+    let mut case = family_case_shaped(effect, seed, n, Shape::SISO).unwrap();
+    leave_order_to_auto(&mut case);
+    set_user_past(&mut case, past);
+    diagnose_case(case)
+}
+
 /// The user's `lpvid pbsid` options with past window `p` in place of the drawn one.
 fn set_user_past(case: &mut FamilyCase, p: usize) {
     if let Some(i) = case.pbsid_args.iter().position(|a| a == "--past") {
