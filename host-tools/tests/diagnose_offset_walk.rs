@@ -8,7 +8,8 @@
 //! order for the offset (3-5 states where the plant has 1-3). A Lur'e y1^2 or |y1| y1
 //! channel then reaches the constant through the output's level; with as many free
 //! coefficients as the constant channel it was named first by a held-out error lower in the
-//! fourth digit of the VAF. Long tier, release mode.
+//! fourth digit of the VAF. Long tier, release mode. Beside it, in the default tier, a
+//! family plant whose own-output twin stood for the offset.
 
 mod diagnose_support;
 
