@@ -722,19 +722,23 @@ impl Judgement {
             } else if let Some(v) = self.vs_linearised.filter(|v| !beaten(Some(*v))) {
                 let s = &b.scored[self.index];
                 let null = s.cand.null.as_ref().unwrap_or(b.spec);
-                if output::is_twin(&null.signals, &s.cand.spec.signals) {
-                    format!(
-                    "the model's own structure with the constant channel (an offset), refined from this variant's fit with its own-output signals replaced by their best linear stand-ins, removes that error as well: against it this variant explains {:.1} % of the held-out error (p = {:.2e}); its function of the output stood for the output's level, which the offset holds, not for a dependence on the output level",
-                    100.0 * v.0,
-                    v.1
-                )
+                // a twin's null keeps its constant channel (output::twin_null)
+                let (null_words, what) = if output::is_twin(&null.signals, &s.cand.spec.signals) {
+                    (
+                        " with the constant channel (an offset)",
+                        "its function of the output stood for the output's level, which the offset holds, not for a dependence on the output level",
+                    )
                 } else {
-                    format!(
-                    "the model's own structure refined from this variant's fit, its own-output signals replaced by their best linear stand-ins, removes that error as well: against it this variant explains {:.1} % of the held-out error (p = {:.2e}); what it removed is a local minimum of the structure's refinement, not a dependence on the output level",
+                    (
+                        "",
+                        "what it removed is a local minimum of the structure's refinement, not a dependence on the output level",
+                    )
+                };
+                format!(
+                    "the model's own structure{null_words}, refined from this variant's fit, its own-output signals replaced by their best linear stand-ins, removes that error as well: against it this variant explains {:.1} % of the held-out error (p = {:.2e}); {what}",
                     100.0 * v.0,
                     v.1
                 )
-                }
             } else if let Some(v) = self.vs_without.filter(|v| !beaten(Some(*v))) {
                 format!(
                 "the same fit without its sinusoids (their columns of B and D set to zero, every other coefficient as fitted) does as well: against it the sinusoids explain {:.1} % of the held-out error (p = {:.2e}); what the variant removed is a change in the rest of the estimate that adding two input channels to the refit made, not a periodic disturbance",
