@@ -4,7 +4,9 @@
 //! the frozen A(mu) stays stable at the operating points the training record visits (or no
 //! less stable than before). And `--fix` when no effect is a finding but the structure's
 //! estimate is biased: the structure refined by output error is the model written
-//! (`diagnose::RefinedFix`). Run in release mode.
+//! (`diagnose::RefinedFix`). A model so refined, or written by a fix refined from the user's
+//! structure refined (a scheduled output equation included), is refit refined when diagnosed
+//! again. Run in release mode.
 
 mod diagnose_support;
 
@@ -160,4 +162,63 @@ fn a_refined_model_is_refit_refined_by_a_later_diagnosis() {
         r.before.vaf_mean
     );
     assert!(r.before.vaf_mean > 98.0, "{}", r.before.vaf_mean);
+}
+
+/// A model written by a `scheduled-output` fix (its C^(i), D^(i) refined from the user's
+/// structure refined) is a structure refined by output error with a scheduled output
+/// equation, which the refinement through the loop cannot fit: diagnosed again (or at a
+/// second `--fix` step), every variant failed to refit ("refit as lpv-ss with a constant
+/// output equation"), and at a second step its candidates inherited the first step's null,
+/// so an offset channel was applied to family plant scheduled-output 240101 (order 4, no
+/// offset) for 87.6 % of an error its first step's structure had already removed. Now the
+/// structure is refit nested in its constant-output part refined
+/// (`refit::fit_refined_scheduled_output`): the variants are scored against the model as
+/// written, and the order the user's `--order auto` missed is what the second run names.
+#[test]
+fn a_scheduled_output_fix_is_diagnosed_again_against_itself() {
+    let (_, first) = diagnose_one_auto("scheduled-output", 240101, 1500, Shape::SISO);
+    assert_eq!(
+        first.report.applied.first().map(|a| a.effect),
+        Some("scheduled-output")
+    );
+    let fixed = first.model;
+    let spec = Spec::from_model(&fixed, &mut vec![]).unwrap();
+    assert!(spec.refined && spec.scheduled_output, "{spec:?}");
+
+    let case = family_case("scheduled-output", 240101, 1500).unwrap();
+    let opts = lpvid_host::diagnose::Options {
+        fix: true,
+        max_steps: 1,
+        threads: 2,
+    };
+    let second = lpvid_host::diagnose::diagnose(&fixed, &case.train, &case.val, &opts).unwrap();
+    let r = &second.report;
+    let step = &r.steps[0];
+    // the null is the structure as written: it predicts as the given model does
+    println!(
+        "given {:.2} %, null refit {:.2} %",
+        r.before.vaf_mean, step.null_refit_vaf
+    );
+    assert!((step.null_refit_vaf - r.before.vaf_mean).abs() < 1.0);
+    // every variant is refit but the own-output ones (a Lur'e channel beside a scheduled
+    // output equation is not a structure the loop's refinement fits)
+    let failed: Vec<_> = step
+        .variants_scored
+        .iter()
+        .filter(|v| v.error.is_some() && v.effect != "output-nonlinearity")
+        .map(|v| (v.effect, v.detail.as_str(), v.error.as_deref()))
+        .collect();
+    assert!(failed.is_empty(), "{failed:#?}");
+    assert!(
+        step.variants_scored.len() >= 30,
+        "{}",
+        step.variants_scored.len()
+    );
+    let a = r.applied.first().expect("a fix");
+    println!(
+        "{} ({}): {:.3e} -> {:.3e}",
+        a.effect, a.detail, a.mse_before, a.mse_after
+    );
+    assert_eq!(a.effect, "order-too-low");
+    assert!(a.mse_before / a.mse_after > 2.0);
 }

@@ -656,7 +656,7 @@ fn fix_steps(
             vaf_after: mean_vaf(&eval),
         });
         trail.model = with_provenance(fitted.model.clone(), &given, &trail.applied);
-        spec = s.cand.spec;
+        spec = s.cand.spec.as_written();
         base = Fitted {
             model: trail.model.clone(),
             ..fitted

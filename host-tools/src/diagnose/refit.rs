@@ -194,6 +194,22 @@ impl Spec {
             && (self.refined || self.nested_in.is_some() || self.signals.has_feedback())
     }
 
+    /// The structure as a later diagnosis refits the model this spec wrote: refined by output
+    /// error as a whole when it was fitted refined ([`Spec::fitted_refined`], the
+    /// [`REFINED_KEY`] [`Spec::from_model`] reads back), nested in nothing and on the measured
+    /// scheduling columns. The spec of the next `--fix` step: its candidates are then judged
+    /// against the structure as fixed, where a fix nested in the step's refined structure had
+    /// passed that step's null on to every later candidate (credited again with what the step
+    /// before had added).
+    pub fn as_written(&self) -> Spec {
+        Spec {
+            refined: self.fitted_refined() && !self.signals.has_feedback(),
+            nested_in: None,
+            latent: None,
+            ..self.clone()
+        }
+    }
+
     /// The refit settings of a model file: its signals and the settings of its `fit`
     /// record, refined by output error when the record says the model was ([`REFINED_KEY`],
     /// or `lpvid pbsid --refine`). Missing settings get the `lpvid pbsid` defaults and a note
@@ -412,6 +428,14 @@ fn fit_structure(
         };
         return fit_nested(spec, ns, base, train, base_fit);
     }
+    if spec.refined && !spec.signals.has_feedback() {
+        if spec.noise != Noise::Pbsid {
+            return fit_refined_noise(spec, train, base_fit);
+        }
+        if spec.scheduled_output {
+            return fit_refined_scheduled_output(spec, train, base_fit);
+        }
+    }
     // a structure that reads the model's own output, or its null (diagnose/output.rs)
     if spec.signals.has_feedback() || spec.refined {
         return super::output::fit(spec, train, base_fit);
@@ -480,14 +504,7 @@ fn fit_structure(
         } else {
             Value::Null
         },
-        "noise_model": match spec.noise.name() {
-            Some(kind) => json!({
-                "kind": kind,
-                "residual": if spec.noise == Noise::Innovation { "one-step" } else { "free-run" },
-                "ar_orders": noise_orders,
-            }),
-            None => Value::Null,
-        },
+        "noise_model": noise_record(spec.noise, &noise_orders),
         "train_rows": train.len(),
         // "order" stays the plant order the refit uses; with a noise model the model has more
         // states (plant + AR noise states)
@@ -512,6 +529,69 @@ fn fit_structure(
         noise_orders,
         sigma_p: None,
     })
+}
+
+/// A structure with a scheduled output equation y = sum_i mu^(i) (C^(i) x + D^(i) u),
+/// refined by output error as a whole ([`Spec::refined`]): nested in its constant-output
+/// part refined ([`fit_nested`]: the C^(i), D^(i) of i > 1 started at zero, and its own
+/// subspace estimate refined as a second start), the way the `scheduled-output` fix was
+/// fitted. The refinement through the loop ([`super::output::fit`]) has a constant output
+/// equation only, so without this a model written by that fix, diagnosed again (or at the
+/// next `--fix` step), had no refit and none of its variants could be scored.
+fn fit_refined_scheduled_output(
+    spec: &Spec,
+    train: &Dataset,
+    base_fit: &Value,
+) -> Result<Fitted, RefitError> {
+    let plain = Spec {
+        scheduled_output: false,
+        output_ls: false,
+        ..spec.clone()
+    };
+    let base = fit_spec(&plain, train, base_fit)?;
+    fit_nested(spec, &plain, base, train, base_fit)
+}
+
+/// A noise model ([`Noise::Innovation`], [`Noise::OutputError`]) on a structure refined by
+/// output error ([`Spec::refined`]): the structure refined without it, then the
+/// autoregression of its training residual appended ([`add_noise_model`]), as a subspace fit
+/// gets it. Why: a `coloured-noise` variant of a refined model (a refined fix, `lpvid pbsid
+/// --refine`) had no refit, its noise model judged against nothing.
+fn fit_refined_noise(spec: &Spec, train: &Dataset, base_fit: &Value) -> Result<Fitted, RefitError> {
+    let mut fitted = fit_spec(
+        &Spec {
+            noise: Noise::Pbsid,
+            ..spec.clone()
+        },
+        train,
+        base_fit,
+    )?;
+    let ModelKind::Ss(ss) = &fitted.model.kind else {
+        return Err(RefitError::Unsupported(
+            "a noise model is added to lpv-ss models".into(),
+        ));
+    };
+    let sig = spec.signals.evaluate(train)?;
+    let (aug, orders) = add_noise_model(ss, &sig, spec.noise)?;
+    if let Value::Object(rec) = &mut fitted.model.fit {
+        rec.insert("noise_model".into(), noise_record(spec.noise, &orders));
+        rec.insert("states".into(), json!(aug.n()));
+    }
+    fitted.model.kind = ModelKind::Ss(aug);
+    fitted.noise_orders = orders;
+    Ok(fitted)
+}
+
+/// The `noise_model` entry of a fit record: what [`Spec::from_model`] reads back.
+fn noise_record(noise: Noise, orders: &[usize]) -> Value {
+    match noise.name() {
+        Some(kind) => json!({
+            "kind": kind,
+            "residual": if noise == Noise::Innovation { "one-step" } else { "free-run" },
+            "ar_orders": orders,
+        }),
+        None => Value::Null,
+    }
 }
 
 /// Scheduling-noise in the state-space structure (issue 14): the structure fitted on the
@@ -781,9 +861,12 @@ pub fn fit_nested(
     let padded = refine(&start);
     // the second start: the structure's own PBSID estimate, refined the same way; the lower
     // training error is kept, so the result stays at or below the null's training error
+    // (a scheduled output refined as a whole is itself this nested fit: its own start is
+    // its subspace estimate)
     let own = fit_spec(
         &Spec {
             nested_in: None,
+            refined: spec.refined && !spec.scheduled_output,
             ..spec.clone()
         },
         train,
@@ -1469,4 +1552,60 @@ fn split_output_theta(
         })
         .collect();
     (c, d)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn plain() -> Spec {
+        Spec {
+            signals: SignalMap::standard(1, 1, 0),
+            opts: PbsidOptions::new(8),
+            reg_text: "none".into(),
+            scheduled_output: false,
+            output_ls: false,
+            noise: Noise::Pbsid,
+            arx: None,
+            refined: false,
+            nested_in: None,
+            latent: None,
+        }
+    }
+
+    /// The next `--fix` step's structure: a fix nested in the step's refined structure is
+    /// refined as a whole and nested in nothing (its candidates are judged against it, not
+    /// against the step's null); a subspace fix stays a subspace fit; an own-output fix is
+    /// refined through its signals, not flagged; a latent fit reads the measured columns.
+    #[test]
+    fn the_next_step_refits_the_fix_as_written() {
+        let mut nested = plain();
+        nested.signals.inputs.push(vec![]);
+        nested.nested_in = Some(Box::new(Spec {
+            refined: true,
+            ..plain()
+        }));
+        let next = nested.as_written();
+        assert!(next.refined && next.nested_in.is_none());
+        assert_eq!(next.signals, nested.signals);
+        assert!(next.fitted_refined());
+
+        let subspace = plain().as_written();
+        assert!(!subspace.refined && !subspace.fitted_refined());
+
+        let mut lure = plain();
+        lure.signals.inputs.push(vec![Factor::col("y1")]);
+        let next = lure.as_written();
+        assert!(!next.refined && next.fitted_refined());
+
+        let latent = Spec {
+            latent: Some(LatentSpec {
+                columns: vec![("p1".into(), 0.01)],
+                rounds: 3,
+                smooth: true,
+            }),
+            ..plain()
+        };
+        assert!(latent.as_written().latent.is_none());
+    }
 }
