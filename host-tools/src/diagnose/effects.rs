@@ -1160,18 +1160,7 @@ mod tests {
     /// else than its inputs is not nested.
     #[test]
     fn an_added_channel_must_earn_its_place() {
-        let spec = Spec {
-            signals: SignalMap::standard(1, 1, 0),
-            opts: crate::pbsid::PbsidOptions::new(8),
-            reg_text: "none".into(),
-            scheduled_output: false,
-            output_ls: false,
-            noise: super::super::refit::Noise::Pbsid,
-            arx: None,
-            refined: false,
-            nested_in: None,
-            latent: None,
-        };
+        let spec = super::super::refit::tests::plain();
         let mut cube = Factor::col("y1");
         cube.pow = 3.0;
         let mut plain = spec.clone();

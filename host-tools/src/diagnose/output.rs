@@ -816,27 +816,12 @@ mod tests {
         }]
     }
 
-    fn user_spec() -> Spec {
-        Spec {
-            signals: crate::model::SignalMap::standard(1, 1, 0),
-            opts: crate::pbsid::PbsidOptions::new(8),
-            reg_text: "none".into(),
-            scheduled_output: false,
-            output_ls: false,
-            noise: Noise::Pbsid,
-            arx: None,
-            refined: false,
-            nested_in: None,
-            latent: None,
-        }
-    }
-
     /// The comprehensive structure of an order-too-low variant and a Lur'e variant
     /// (`encompass::order_union_spec`): the Lur'e channel with the larger windows and the fixed
     /// order, and the order structure refined; nothing for two structures it cannot combine.
     #[test]
     fn the_union_of_a_larger_structure_and_a_lure_channel() {
-        let user = user_spec();
+        let user = super::super::refit::tests::plain();
         let mut lure = user.clone();
         lure.signals.inputs.push(sin_of("y1", 1.0));
         let mut past = user.clone();

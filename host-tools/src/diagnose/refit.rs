@@ -1555,10 +1555,11 @@ fn split_output_theta(
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
 
-    fn plain() -> Spec {
+    /// The tests' user structure: one input, one output, past window 8, fitted by PBSID alone.
+    pub(crate) fn plain() -> Spec {
         Spec {
             signals: SignalMap::standard(1, 1, 0),
             opts: PbsidOptions::new(8),
