@@ -816,9 +816,10 @@ pub fn fit_nested(
     // a channel replaced (the null's channels, one delayed: input-delay; any added after)
     // keeps the null's shapes; its start is the null's model read with the replaced
     // channel, which may fit the training data worse than the null: the one form not
-    // nested. Channels added after: a later step's structure, which carries the channel an
-    // earlier fix added beyond the null it was nested in (EMPS: q_ref added at step 1, then
-    // u1 delayed at step 2)
+    // nested. Channels added after the null's are started at zero, as an added channel is
+    // (a structure that delays one channel and carries another beyond its null's; EMPS's
+    // step 2 was one while a later step still inherited the earlier step's null, before
+    // `Spec::as_written`)
     let replaced = inputs >= inputs0
         && spec.signals.inputs[..inputs0] != null.signals.inputs[..]
         && spec.signals.inputs[..inputs0]
