@@ -129,12 +129,7 @@ fn a_refined_model_is_refit_refined_by_a_later_diagnosis() {
     assert!(spec.refined, "the record says the structure was refined");
 
     let case = family_case("input-delay", 240107, 1500).unwrap();
-    let opts = lpvid_host::diagnose::Options {
-        fix: true,
-        max_steps: 1,
-        threads: 2,
-    };
-    let second = lpvid_host::diagnose::diagnose(&refined, &case.train, &case.val, &opts).unwrap();
+    let second = diagnose_again(&refined, &case);
     let r = &second.report;
     assert!(r.refined.is_none(), "{:?}", r.refined);
     assert!(
@@ -186,12 +181,7 @@ fn a_scheduled_output_fix_is_diagnosed_again_against_itself() {
     assert!(spec.refined && spec.scheduled_output, "{spec:?}");
 
     let case = family_case("scheduled-output", 240101, 1500).unwrap();
-    let opts = lpvid_host::diagnose::Options {
-        fix: true,
-        max_steps: 1,
-        threads: 2,
-    };
-    let second = lpvid_host::diagnose::diagnose(&fixed, &case.train, &case.val, &opts).unwrap();
+    let second = diagnose_again(&fixed, &case);
     let r = &second.report;
     let step = &r.steps[0];
     // the null is the structure as written: it predicts as the given model does
@@ -221,4 +211,17 @@ fn a_scheduled_output_fix_is_diagnosed_again_against_itself() {
     );
     assert_eq!(a.effect, "order-too-low");
     assert!(a.mse_before / a.mse_after > 2.0);
+}
+
+/// The diagnosis (`--fix`, one step) of a model a first diagnosis of `case` wrote.
+fn diagnose_again(
+    model: &lpvid_host::model::ModelFile,
+    case: &lpvid_host::diagnose::plants::FamilyCase,
+) -> lpvid_host::diagnose::Outcome {
+    let opts = lpvid_host::diagnose::Options {
+        fix: true,
+        max_steps: 1,
+        threads: 2,
+    };
+    lpvid_host::diagnose::diagnose(model, &case.train, &case.val, &opts).unwrap()
 }
