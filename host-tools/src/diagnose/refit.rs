@@ -570,9 +570,10 @@ fn fit_refined_noise(spec: &Spec, train: &Dataset, base_fit: &Value) -> Result<F
 /// `spec` appended to it ([`append_noise_model`]), as [`fit_refined_noise`] does for a
 /// structure refined as a whole. The free-run error the refinement lowers does not see the
 /// noise states (nothing drives them without an innovation), so refining them beside the
-/// plant only lets it turn them into plant states, at the cost of a model of some 50 states:
-/// the smart rotor's third `--fix` step refined its nested variants with the 39 autoregressive
-/// states of its second step's noise model, 838 s for the three steps where 283 s had done.
+/// plant only let it turn them into plant states: the smart rotor's third `--fix` step refined
+/// its nested variants with the 39 autoregressive states of its second step's noise model,
+/// credited an offset with 13.3 % of the error (0.04 % alone), and took 838 s for the three
+/// steps (205 s now; docs/bench-diagnose.md, fiftieth session).
 fn fit_nested_beside_noise(
     spec: &Spec,
     null: &Spec,
