@@ -77,8 +77,10 @@ pub struct FamilyCase {
 impl FamilyCase {
     /// Write the records and the user's `lpvid pbsid` options into `dir` as
     /// `EFFECT-SEED.train.csv`, `.val.csv` and `.args`, so that a plant of a family run can be
-    /// traced through the command line (`LPVID_FAMILY_DUMP` of the family examples).
+    /// traced through the command line (`LPVID_FAMILY_DUMP` of the family examples); `dir` is
+    /// created when missing.
     pub fn dump(&self, dir: &std::path::Path) -> Result<(), String> {
+        std::fs::create_dir_all(dir).map_err(|e| format!("{}: {e}", dir.display()))?;
         let base = dir.join(format!("{}-{}", self.effect, self.seed));
         let text = |e: crate::data::DataError| e.to_string();
         self.train
@@ -955,6 +957,25 @@ fn draw(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A dump into a directory that does not exist yet creates it and writes the records and
+    /// the options a command line reads back.
+    #[test]
+    fn a_dump_creates_its_directory_and_reads_back() {
+        let case = family_case("output-offset", 3, 300).unwrap();
+        let tmp = tempfile::tempdir().unwrap();
+        let dir = tmp.path().join("not").join("yet");
+        case.dump(&dir).unwrap();
+        let train = Dataset::read_csv(&dir.join("output-offset-3.train.csv")).unwrap();
+        let val = Dataset::read_csv(&dir.join("output-offset-3.val.csv")).unwrap();
+        assert_eq!((train.len(), val.len()), (case.train.len(), case.val.len()));
+        assert_eq!(
+            train.column("y1").unwrap()[7],
+            case.train.column("y1").unwrap()[7]
+        );
+        let args = std::fs::read_to_string(dir.join("output-offset-3.args")).unwrap();
+        assert_eq!(args.trim_end(), case.pbsid_args.join(" "));
+    }
 
     #[test]
     fn operating_points_hold_levels_and_leave_every_other_signal_as_drawn() {
