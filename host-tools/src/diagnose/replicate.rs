@@ -547,19 +547,16 @@ impl<'a> Halves<'a> {
                 Support::TooShort => {
                     let other = &self.sets[1 - i];
                     let which = if i == 0 { "the second" } else { "the first" };
-                    match support(half, other, &cols, feedback) {
-                        Support::Parts(sp) => Some(Stretches::of(
-                            other,
-                            &sp,
-                            &format!("{which} training half's"),
-                        )),
-                        Support::Whole => Some(Stretches::of(
-                            other,
-                            &[(0, other.len())],
-                            &format!("{which} training half's"),
-                        )),
-                        Support::TooShort => None,
-                    }
+                    let sp = match support(half, other, &cols, feedback) {
+                        Support::Parts(sp) => sp,
+                        Support::Whole => vec![(0, other.len())],
+                        Support::TooShort => return None,
+                    };
+                    Some(Stretches::of(
+                        other,
+                        &sp,
+                        &format!("{which} training half's"),
+                    ))
                 }
             }
         });
