@@ -44,7 +44,7 @@ use crate::data::Dataset;
 use crate::model::{Factor, ModelFile};
 use crate::significance::mean_t;
 use std::borrow::Cow;
-use std::cell::OnceCell;
+use std::sync::OnceLock;
 
 /// When the best variant of an effect does not replicate, at most this many of its other
 /// variants that pass every full-data test of a finding ([`alternatives`]) are replicated in
@@ -318,7 +318,7 @@ pub struct Halves<'a> {
     fit: &'a serde_json::Value,
     /// The null structure one past sample longer refit on each half, when a half's refit
     /// first runs away (None inside: it cannot be refit).
-    wider: [OnceCell<Option<HalfNull>>; 2],
+    wider: [OnceLock<Option<HalfNull>>; 2],
 }
 
 /// `spec` at `order`, the order its fit on the whole training record took, when it leaves
@@ -465,6 +465,20 @@ impl Stretches {
     }
 }
 
+/// `f` of half 0 and of half 1, the second on a thread of its own: the two halves' refits
+/// are independent, and a replication is otherwise a serial stage of a step. Each half's
+/// result is what `f` computes alone, whichever thread runs it.
+fn on_both<T: Send>(f: impl Fn(usize) -> T + Sync) -> [T; 2] {
+    std::thread::scope(|s| {
+        let second = s.spawn(|| f(1));
+        let first = f(0);
+        let second = second
+            .join()
+            .unwrap_or_else(|e| std::panic::resume_unwind(e));
+        [first, second]
+    })
+}
+
 impl<'a> Halves<'a> {
     /// The halves of `train` and the structure `spec` refit on each, scored on `val`; None
     /// when the structure cannot be refit on a half.
@@ -475,14 +489,14 @@ impl<'a> Halves<'a> {
         fit: &'a serde_json::Value,
     ) -> Option<Halves<'a>> {
         let sets = halves(train);
-        let [n0, n1] = [0, 1].map(|i| HalfNull::fit(&spec, &sets[i], val, fit));
+        let [n0, n1] = on_both(|i| HalfNull::fit(&spec, &sets[i], val, fit));
         Some(Halves {
             sets,
             nulls: [n0?, n1?],
             spec,
             val,
             fit,
-            wider: [OnceCell::new(), OnceCell::new()],
+            wider: [OnceLock::new(), OnceLock::new()],
         })
     }
 
@@ -570,66 +584,78 @@ impl<'a> Halves<'a> {
     /// saw part of the operating range scored on the held-out rows inside that range; a half
     /// where either refit runs away is scored again with both one past sample longer.
     fn replicate_on(&self, cand: &Candidate, spans: Option<&Spans>) -> Replication {
-        let mode = cand.effect.metric();
+        let [h0, h1] = on_both(|i| self.half_on(i, cand, spans));
         let mut r = Replication {
             versus: Vec::with_capacity(2),
             bases: Vec::with_capacity(2),
             widened: Vec::new(),
             within_range: false,
         };
-        for i in 0..2 {
-            let h = &self.sets[i];
-            let half = if i == 0 { "first" } else { "second" };
-            let span = spans.and_then(|s| s.per_half[i].as_ref());
-            let parts: Option<&[Dataset]> = span.map(|sp| sp.parts.as_slice());
-            let Some(nulls) = self.nulls[i].on(parts) else {
-                // the null cannot be evaluated on the parts: the half is not replicated
-                r.versus.push((f64::NEG_INFINITY, 1.0));
-                r.bases.push(Basis::EstimatedStart);
-                continue;
-            };
-            let held = parts.unwrap_or(std::slice::from_ref(self.val));
-            let mut s = score_parts(cand.clone(), h, held, self.fit, Some(&nulls));
-            let ran_away = |s: &Scored| s.eval.as_ref().is_some_and(|e| e.runs_away(mode));
-            let null_away = nulls.iter().any(|n| n.runs_away(mode));
-            // a variant with its own null is compared with that null, refit inside `score`
-            if ran_away(&s) || (cand.null.is_none() && null_away) {
-                // a wider refit that fails leaves the half as it was scored
-                if let Some(w) = self
-                    .wider_score(i, cand, parts)
-                    .filter(|w| w.error.is_none())
-                {
-                    let past = |sp: &Spec| sp.opts.past;
-                    let null_past = cand.null.as_ref().map_or(past(&self.spec), past);
-                    let pasts = if null_past == past(&cand.spec) {
-                        format!("past window {} (was {})", null_past + 1, null_past)
-                    } else {
-                        format!(
-                            "past windows {} and {} (were {} and {})",
-                            past(&cand.spec) + 1,
-                            null_past + 1,
-                            past(&cand.spec),
-                            null_past
-                        )
-                    };
-                    r.widened.push(format!(
-                        "on the {half} half the {} refit ran away from the held-out data, so both were refit there one past sample longer: {pasts}",
-                        if ran_away(&s) { "variant's" } else { "null structure's" },
-                    ));
-                    s = w;
-                }
-            }
-            if let (Some(sp), Some(spans)) = (span, spans) {
-                r.widened.push(format!(
-                    "the {half} half saw part of the range of {} and was scored on {}",
-                    spans.cols.join(", "),
-                    sp.words
-                ));
-            }
-            r.versus.push((s.explained, s.p_value));
-            r.bases.push(s.basis);
+        for (versus, basis, widened) in [h0, h1] {
+            r.versus.push(versus);
+            r.bases.push(basis);
+            r.widened.extend(widened);
         }
         r
+    }
+
+    /// Half `i` of [`Halves::replicate_on`]: (explained, p-value), the comparison used, and
+    /// how the half was scored when not as usual, in words.
+    fn half_on(
+        &self,
+        i: usize,
+        cand: &Candidate,
+        spans: Option<&Spans>,
+    ) -> ((f64, f64), Basis, Vec<String>) {
+        let mode = cand.effect.metric();
+        let mut widened = Vec::new();
+        let h = &self.sets[i];
+        let half = if i == 0 { "first" } else { "second" };
+        let span = spans.and_then(|s| s.per_half[i].as_ref());
+        let parts: Option<&[Dataset]> = span.map(|sp| sp.parts.as_slice());
+        let Some(nulls) = self.nulls[i].on(parts) else {
+            // the null cannot be evaluated on the parts: the half is not replicated
+            return ((f64::NEG_INFINITY, 1.0), Basis::EstimatedStart, widened);
+        };
+        let held = parts.unwrap_or(std::slice::from_ref(self.val));
+        let mut s = score_parts(cand.clone(), h, held, self.fit, Some(&nulls));
+        let ran_away = |s: &Scored| s.eval.as_ref().is_some_and(|e| e.runs_away(mode));
+        let null_away = nulls.iter().any(|n| n.runs_away(mode));
+        // a variant with its own null is compared with that null, refit inside `score`
+        if ran_away(&s) || (cand.null.is_none() && null_away) {
+            // a wider refit that fails leaves the half as it was scored
+            if let Some(w) = self
+                .wider_score(i, cand, parts)
+                .filter(|w| w.error.is_none())
+            {
+                let past = |sp: &Spec| sp.opts.past;
+                let null_past = cand.null.as_ref().map_or(past(&self.spec), past);
+                let pasts = if null_past == past(&cand.spec) {
+                    format!("past window {} (was {})", null_past + 1, null_past)
+                } else {
+                    format!(
+                        "past windows {} and {} (were {} and {})",
+                        past(&cand.spec) + 1,
+                        null_past + 1,
+                        past(&cand.spec),
+                        null_past
+                    )
+                };
+                widened.push(format!(
+                    "on the {half} half the {} refit ran away from the held-out data, so both were refit there one past sample longer: {pasts}",
+                    if ran_away(&s) { "variant's" } else { "null structure's" },
+                ));
+                s = w;
+            }
+        }
+        if let (Some(sp), Some(spans)) = (span, spans) {
+            widened.push(format!(
+                "the {half} half saw part of the range of {} and was scored on {}",
+                spans.cols.join(", "),
+                sp.words
+            ));
+        }
+        ((s.explained, s.p_value), s.basis, widened)
     }
 
     /// `cand` and the null structure one past sample longer, refit on half `i` and compared
