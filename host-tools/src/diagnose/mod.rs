@@ -311,59 +311,91 @@ fn score_all(
     .clamp(1, cands.len().max(1));
     // the null structures some candidates are compared with instead of the model's own
     // (the BC-IV fit without its correction, the refined fit of an own-output candidate's
-    // structure): refit once per distinct structure, not once per candidate
-    // (structure, its held-out evaluation)
-    // a candidate nested in its null starts from the null's fit (effects::score_own)
-    let mut nulls: Vec<NullFit> = Vec::new();
+    // structure): refit once per distinct structure, not once per candidate, on the worker
+    // threads too (a refined null is a refinement by output error); a candidate nested in its
+    // null starts from the null's fit (effects::score_own)
+    let mut keys: Vec<(String, &Spec)> = Vec::new();
     for c in &cands {
         let Some(ns) = &c.null else { continue };
         let key = ns.key();
-        if nulls.iter().any(|n| n.key == key) {
-            continue;
-        }
-        // a null that cannot be refit is left to `effects::score`, which reports why
-        let fitted = fit_spec(ns, train, fit).ok();
-        if let Some((f, e)) = fitted.and_then(|f| Eval::new(&f.model, val).ok().map(|e| (f, e))) {
-            nulls.push(NullFit {
-                key,
-                fitted: f,
-                eval: e,
-            });
+        if !keys.iter().any(|(k, _)| *k == key) {
+            keys.push((key, ns));
         }
     }
-    let jobs: Vec<(usize, effects::Candidate)> = cands.into_iter().enumerate().collect();
+    // a null that cannot be refit is left to `effects::score`, which reports why
+    let nulls: Vec<NullFit> = parallel_map(
+        &keys,
+        threads,
+        |(key, ns)| {
+            let f = fit_spec(ns, train, fit).ok()?;
+            let e = Eval::new(&f.model, val).ok()?;
+            Some(NullFit {
+                key: key.clone(),
+                fitted: f,
+                eval: e,
+            })
+        },
+        |_| {},
+    )
+    .into_iter()
+    .flatten()
+    .collect();
+    let results = parallel_map(
+        &cands,
+        threads,
+        |c| {
+            let own = c.null.as_ref().and_then(|ns| {
+                let key = ns.key();
+                nulls.iter().find(|n| n.key == key)
+            });
+            // the own null's evaluation is given: score against it without refitting it
+            match own {
+                Some(n) => effects::score_own(c.clone(), train, val, fit, &n.eval, &n.fitted),
+                None => effects::score(c.clone(), train, val, fit, Some(base)),
+            }
+        },
+        |done| {
+            if let Some(p) = progress {
+                p(done, cands.len());
+            }
+        },
+    );
+    (results, nulls)
+}
+
+/// `f` of each item on `threads` worker threads, the results in the items' order; `done`
+/// is told how many are finished after each one. Each item's result is what `f` computes
+/// alone, whichever thread runs it.
+fn parallel_map<T: Sync, R: Send>(
+    items: &[T],
+    threads: usize,
+    f: impl Fn(&T) -> R + Sync,
+    done: impl Fn(usize) + Sync,
+) -> Vec<R> {
     let next = std::sync::atomic::AtomicUsize::new(0);
-    let mut results: Vec<Option<Scored>> = vec![None; jobs.len()];
-    let out = std::sync::Mutex::new(&mut results);
+    let slots: std::sync::Mutex<Vec<Option<R>>> =
+        std::sync::Mutex::new(items.iter().map(|_| None).collect());
     std::thread::scope(|s| {
-        for _ in 0..threads {
+        for _ in 0..threads.clamp(1, items.len().max(1)) {
             s.spawn(|| loop {
                 let i = next.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
-                if i >= jobs.len() {
-                    break;
-                }
-                let c = jobs[i].1.clone();
-                let own = c.null.as_ref().and_then(|ns| {
-                    let key = ns.key();
-                    nulls.iter().find(|n| n.key == key)
-                });
-                // the own null's evaluation is given: score against it without refitting it
-                let sc = match own {
-                    Some(n) => effects::score_own(c, train, val, fit, &n.eval, &n.fitted),
-                    None => effects::score(c, train, val, fit, Some(base)),
-                };
-                let done = {
-                    let mut slots = out.lock().expect("no panics while holding the lock");
-                    slots[jobs[i].0] = Some(sc);
+                let Some(item) = items.get(i) else { break };
+                let r = f(item);
+                let finished = {
+                    let mut slots = slots.lock().expect("no panics while holding the lock");
+                    slots[i] = Some(r);
                     slots.iter().filter(|r| r.is_some()).count()
                 };
-                if let Some(p) = progress {
-                    p(done, jobs.len());
-                }
+                done(finished);
             });
         }
     });
-    (results.into_iter().flatten().collect(), nulls)
+    slots
+        .into_inner()
+        .expect("no panics while holding the lock")
+        .into_iter()
+        .flatten()
+        .collect()
 }
 
 /// `spec` refit on `train` ([`fit_spec`]) and evaluated on `val` ([`Eval::new`]); None when
