@@ -295,41 +295,31 @@ pub fn fit(spec: &Spec, train: &Dataset, base_fit: &Value) -> Result<Fitted, Ref
         .get("order")
         .and_then(Value::as_u64)
         .map(|v| v as usize);
-    let mut order_choice = Value::Null;
-    if let (crate::pbsid::Order::Auto, Some(n0)) = (spec.opts.order, own_order) {
-        if n0 >= 1 && mf.model.n() > n0 {
-            let at_own = crate::pbsid::PbsidOptions {
+    // the other order a structure is fitted at, and the rule that compares the two
+    let other = match (spec.opts.order, own_order) {
+        (crate::pbsid::Order::Auto, Some(n0)) if n0 >= 1 && mf.model.n() > n0 => Some((
+            crate::pbsid::PbsidOptions {
                 order: crate::pbsid::Order::Fixed(n0),
                 ..opts.clone()
-            };
-            if let Ok(alt) = fit_at(&at_own) {
-                let rows = train.len() * l;
-                let (b_auto, b_own) = (bic(&mf, rows), bic(&alt, rows));
-                order_choice = json!({
-                    "rule": "the model's own order against the order PBSID chose with the output in the signals, by BIC on the training free-run error",
-                    "orders": [mf.model.n(), alt.model.n()],
-                    "bic": [b_auto, b_own],
-                });
-                if b_own <= b_auto {
-                    mf = alt;
-                }
-            }
-        } else if n0 >= 1
-            && mf.model.n() == n0
-            && n0 < spec.opts.max_order
-            && lure(&spec.signals)
-            && base_fit.get("output_feedback").is_none()
+            },
+            "the model's own order against the order PBSID chose with the output in the signals, by BIC on the training free-run error",
+        )),
+        // one state more than the model's own for a Lur'e channel the model lacked: the
+        // linear model of a plant whose nonlinearity dominates can have fewer states than
+        // the plant (a pendulum that goes over the top: its linear fit reads one state),
+        // and PBSID with f(y) among the signals reads the same gap. Not for a structure
+        // without one (the model's own structure refined is the null of every candidate,
+        // at the model's order), nor once a fix fed an output back (its order was chosen
+        // so then). Not for a quasi-LPV function of the output either: its fits are the
+        // costly ones (A^(i), B^(i) per function), and the states a plant's nonlinearity
+        // hides from its linear model are those of a Lur'e loop
+        (crate::pbsid::Order::Auto, Some(n0))
+            if n0 >= 1
+                && mf.model.n() == n0
+                && n0 < spec.opts.max_order
+                && lure(&spec.signals)
+                && base_fit.get("output_feedback").is_none() =>
         {
-            // one state more than the model's own for a Lur'e channel the model lacked: the
-            // linear model of a plant whose nonlinearity dominates can have fewer states than
-            // the plant (a pendulum that goes over the top: its linear fit reads one state),
-            // and PBSID with f(y) among the signals reads the same gap. Not for a structure
-            // without one (the model's own structure refined is the null of every candidate,
-            // at the model's order), nor once a fix fed an output back (its order was chosen
-            // so then). Not for a quasi-LPV function of the output either: its fits are the
-            // costly ones (A^(i), B^(i) per function), and the states a plant's nonlinearity
-            // hides from its linear model are those of a Lur'e loop
-            let l = spec.signals.outputs.len();
             let need = (n0 + 2).div_ceil(l.max(1));
             let mut at_more = crate::pbsid::PbsidOptions {
                 order: crate::pbsid::Order::Fixed(n0 + 1),
@@ -339,18 +329,26 @@ pub fn fit(spec: &Spec, train: &Dataset, base_fit: &Value) -> Result<Fitted, Ref
                 at_more.past = at_more.past.max(need);
                 at_more.future = Some(need.min(at_more.past));
             }
-            if let Ok(alt) = fit_at(&at_more) {
-                let rows = train.len() * l;
-                let (b_auto, b_more) = (bic(&mf, rows), bic(&alt, rows));
-                order_choice = json!({
-                    "rule": "the model's own order against one state more, by BIC on the training free-run error",
-                    "orders": [mf.model.n(), alt.model.n()],
-                    "bic": [b_auto, b_more],
-                });
-                if b_more < b_auto {
-                    mf = alt;
-                }
-            }
+            Some((
+                at_more,
+                "the model's own order against one state more, by BIC on the training free-run error",
+            ))
+        }
+        _ => None,
+    };
+    let mut order_choice = Value::Null;
+    if let Some((alt, rule)) = other.and_then(|(o, rule)| Some((fit_at(&o).ok()?, rule))) {
+        let rows = train.len() * l;
+        let (b_fit, b_alt) = (bic(&mf, rows), bic(&alt, rows));
+        order_choice = json!({
+            "rule": rule,
+            "orders": [mf.model.n(), alt.model.n()],
+            "bic": [b_fit, b_alt],
+        });
+        // a tie goes to the fewer states
+        let fewer = alt.model.n() < mf.model.n();
+        if b_alt < b_fit || (fewer && b_alt == b_fit) {
+            mf = alt;
         }
     }
     let mut rec = match base_fit {
