@@ -447,6 +447,15 @@ pub fn refined_structure(
             .ok()
             .map(|f| f.model),
     };
+    // a variant fitted with one state more than the model ([`fit`]) linearises to a larger
+    // structure, not to the model's own: on the family's 2x1 plant 233002 (one state, coloured
+    // noise) a linearised two-state Lur'e variant became "the model's own structure refined"
+    // and blocked the noise state the plant has
+    let states = |m: &ModelFile| match &m.kind {
+        ModelKind::Ss(ss) => Some(ss.n()),
+        _ => None,
+    };
+    let own_states = own.as_ref().and_then(states);
     let deepest = scored
         .iter()
         .filter(|s| s.cand.effect == super::effects::Effect::OutputNonlinearity)
@@ -454,6 +463,7 @@ pub fn refined_structure(
             let m = &s.fitted.as_ref()?.model;
             Some((refined_mse(m)?, m))
         })
+        .filter(|(_, m)| own_states.is_none() || states(m) == own_states)
         .min_by(|a, b| a.0.total_cmp(&b.0));
     let from_variant = deepest.and_then(|(_, m)| linearised_null(m, &null, train).ok());
     let mse = |m: &Option<ModelFile>| m.as_ref().and_then(refined_mse).unwrap_or(f64::INFINITY);
