@@ -307,8 +307,7 @@ fn score_all(
         std::thread::available_parallelism().map_or(1, |n| n.get())
     } else {
         threads
-    }
-    .clamp(1, cands.len().max(1));
+    };
     // the null structures some candidates are compared with instead of the model's own
     // (the BC-IV fit without its correction, the refined fit of an own-output candidate's
     // structure): refit once per distinct structure, not once per candidate, on the worker
@@ -366,7 +365,7 @@ fn score_all(
 /// `f` of each item on `threads` worker threads, the results in the items' order; `done`
 /// is told how many are finished after each one. Each item's result is what `f` computes
 /// alone, whichever thread runs it.
-fn parallel_map<T: Sync, R: Send>(
+pub(crate) fn parallel_map<T: Sync, R: Send>(
     items: &[T],
     threads: usize,
     f: impl Fn(&T) -> R + Sync,

@@ -465,18 +465,14 @@ impl Stretches {
     }
 }
 
-/// `f` of half 0 and of half 1, the second on a thread of its own: the two halves' refits
-/// are independent, and a replication is otherwise a serial stage of a step. Each half's
-/// result is what `f` computes alone, whichever thread runs it.
+/// `f` of half 0 and of half 1 on two worker threads ([`super::parallel_map`]): the two
+/// halves' refits are independent, and a replication is otherwise a serial stage of a step.
 fn on_both<T: Send>(f: impl Fn(usize) -> T + Sync) -> [T; 2] {
-    std::thread::scope(|s| {
-        let second = s.spawn(|| f(1));
-        let first = f(0);
-        let second = second
-            .join()
-            .unwrap_or_else(|e| std::panic::resume_unwind(e));
-        [first, second]
-    })
+    let mut r = super::parallel_map(&[0, 1], 2, |&i| f(i), |_| {}).into_iter();
+    match (r.next(), r.next()) {
+        (Some(a), Some(b)) => [a, b],
+        _ => unreachable!("parallel_map returns one result per item"),
+    }
 }
 
 impl<'a> Halves<'a> {
