@@ -843,6 +843,27 @@ impl Catalogue<'_, '_> {
             }
             self.push(Effect::OrderTooLow, detail, sp);
         }
+        // one more state refined from the model's own structure refined (refit::fit_nested,
+        // judged against that refined structure), as the other effects' nested variants: the
+        // PBSID variants above are judged against the subspace refit, whose bias can hide a
+        // missing state that a richer structure then stands in for. On the 2x1 clean plant
+        // 243601 (four states, three by `--order auto`) the variants above explained at most
+        // 4.3 % of the refit's error, and a p1^2 basis refined from the refined structure was
+        // named (36 %), where the fourth state refined explains 85 % (docs/bench-diagnose.md,
+        // fifty-second session). Not for a model that feeds its output back: its order was
+        // chosen when the channel was fitted (output::fit), and its refinement through the loop
+        // is the costly one; nor beside a noise model (whose states are not the plant's)
+        if spec.noise == Noise::Pbsid && !spec.signals.has_feedback() {
+            let o = n + 1;
+            let mut sp = spec.clone();
+            sp.opts.order = Order::Fixed(o);
+            let need = (o + 1).div_ceil(l);
+            if sp.opts.future.unwrap_or(past) < need {
+                sp.opts.past = sp.opts.past.max(need);
+                sp.opts.future = Some(need.min(sp.opts.past));
+            }
+            self.push_nested(Effect::OrderTooLow, &format!("order {o} (was {n})"), sp);
+        }
     }
 
     /// coloured-noise: the noise models and more states through K.

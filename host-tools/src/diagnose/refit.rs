@@ -916,7 +916,15 @@ pub fn fit_nested(
             "a nested refinement adds input channels after the null's or delays one of them".into(),
         ));
     }
+    let n_null = ss.n();
     let mut start = ss.clone();
+    // more states (order-too-low refined from the refined structure): decoupled states, the
+    // null's model again
+    if let Order::Fixed(n) = spec.opts.order {
+        if n > start.n() {
+            pad_states(&mut start, n);
+        }
+    }
     // added input channels: zero columns of every B^(i) and D^(i)
     for mats in [&mut start.b, &mut start.d] {
         for mat in mats.iter_mut() {
@@ -1004,6 +1012,25 @@ pub fn fit_nested(
             rec.insert(k, v);
         }
     }
+    // more states than the null: the record names the order (and windows) a later refit of
+    // the written model reads back (Spec::from_model), not the null's
+    if model.n() != n_null {
+        rec.insert("order".into(), json!(model.n()));
+        rec.insert(
+            "order_rule".into(),
+            json!(crate::record::order_rule(spec.opts.order)),
+        );
+        rec.insert("past".into(), json!(spec.opts.past));
+        rec.insert(
+            "future".into(),
+            json!(spec.opts.future.unwrap_or(spec.opts.past)),
+        );
+    }
+    let order = if model.n() == n_null {
+        base.order
+    } else {
+        model.n()
+    };
     Ok(Fitted {
         model: ModelFile {
             kind: ModelKind::Ss(model),
@@ -1011,10 +1038,25 @@ pub fn fit_nested(
             fit: Value::Object(rec),
         },
         singular_values: base.singular_values,
-        order: base.order,
+        order,
         noise_orders: base.noise_orders,
         sigma_p: None,
     })
+}
+
+/// `ss` with `n` states: the added states decoupled (zero rows of every A^(i), B^(i), K^(i),
+/// zero columns of every A^(i), C^(i)), so the padded model is `ss` again. The refinement of
+/// [`fit_nested`] starts there, and the structure's own estimate at `n` states beside it.
+fn pad_states(ss: &mut LpvSs, n: usize) {
+    for a in ss.a.iter_mut() {
+        *a = std::mem::take(a).resize(n, n, 0.0);
+    }
+    for m in ss.b.iter_mut().chain(ss.k.iter_mut()) {
+        *m = std::mem::take(m).resize_vertically(n, 0.0);
+    }
+    for c in ss.c.iter_mut() {
+        *c = std::mem::take(c).resize_horizontally(n, 0.0);
+    }
 }
 
 /// The scheduled output equation nested in the plain one (issue 14): A(mu), B(mu), K(mu)
@@ -1689,6 +1731,46 @@ pub(crate) mod tests {
             ..plain()
         };
         assert!(latent.as_written().latent.is_none());
+    }
+
+    /// One more state nested in the refined structure (`order-too-low`, catalogue): the
+    /// padded start is the null's model again (the same free run), and the fit has the added
+    /// state, a training free-run error at most the null's, and a record that names its order
+    /// (what a later refit of the written model reads back).
+    #[test]
+    fn one_more_state_nested_in_the_refined_structure() {
+        let case = crate::diagnose::plants::family_case("clean", 7, 600).unwrap();
+        let n = case.planted.order;
+        let mut null = plain();
+        null.refined = true;
+        let scheduled = case.train.names.iter().any(|c| c == "p1");
+        null.signals = SignalMap::standard(1, 1, usize::from(scheduled));
+        null.opts.order = Order::Fixed(n);
+        let mut more = null.clone();
+        more.opts.order = Order::Fixed(n + 1);
+        more.nested_in = Some(Box::new(null.clone()));
+        let rec = json!({});
+        let base = fit_spec(&null, &case.train, &rec).unwrap();
+        let fit = fit_spec(&more, &case.train, &rec).unwrap();
+        let (ModelKind::Ss(s0), ModelKind::Ss(s1)) = (&base.model.kind, &fit.model.kind) else {
+            panic!("lpv-ss")
+        };
+        let sig = null.signals.evaluate(&case.train).unwrap();
+        let mut padded = s0.clone();
+        pad_states(&mut padded, n + 1);
+        assert_eq!(padded.n(), n + 1);
+        let y0 = s0.simulate(&sig, None);
+        assert!((padded.simulate(&sig, None) - &y0).amax() < 1e-12);
+        assert_eq!((s1.n(), fit.order), (n + 1, n + 1));
+        assert_eq!(fit.model.fit["order_rule"], json!((n + 1).to_string()));
+        assert_eq!(fit.model.fit["order"], json!(n + 1));
+        let mse = |y: &DMatrix<f64>| (y - &sig.y).norm_squared();
+        assert!(
+            mse(&s1.simulate(&sig, None)) <= mse(&y0) * (1.0 + 1e-9),
+            "{} > {}",
+            mse(&s1.simulate(&sig, None)),
+            mse(&y0)
+        );
     }
 
     /// A structure nested in a null with a noise model refines its plant only: the fit is the
