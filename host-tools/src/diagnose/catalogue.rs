@@ -183,6 +183,20 @@ struct Catalogue<'c, 'a> {
     skipped: Vec<Skipped>,
 }
 
+/// `spec` at the fixed order `o` (an `order-too-low` variant, the family's order oracle), with
+/// enough singular values to read it: a future window f with f * l >= o + 1 for l outputs.
+pub fn with_order(spec: &Spec, o: usize) -> Spec {
+    let mut sp = spec.clone();
+    sp.opts.order = Order::Fixed(o);
+    let l = sp.signals.outputs.len().max(1);
+    let need = (o + 1).div_ceil(l);
+    if sp.opts.future.unwrap_or(sp.opts.past) < need {
+        sp.opts.past = sp.opts.past.max(need);
+        sp.opts.future = Some(need.min(sp.opts.past));
+    }
+    sp
+}
+
 impl Catalogue<'_, '_> {
     /// Add a variant with the null it is judged against ([`Candidate::null`]). A regression
     /// longer than [`MAX_REGRESSORS`] (and twice the model's own) is fitted in the kernel form
@@ -809,7 +823,6 @@ impl Catalogue<'_, '_> {
     fn order_too_low(&mut self) {
         let ctx = self.ctx;
         let spec = ctx.spec;
-        let l = spec.signals.outputs.len();
         let n = ctx.base.order;
         let past = spec.opts.past;
         for (order, p) in [(Some(n + 1), past), (Some(n + 2), past), (None, past + 2)] {
@@ -818,14 +831,7 @@ impl Catalogue<'_, '_> {
             let detail;
             match order {
                 Some(o) => {
-                    sp.opts.order = Order::Fixed(o);
-                    // enough singular values: future window f with f * l >= order + 1
-                    let need = (o + 1).div_ceil(l);
-                    let f = sp.opts.future.unwrap_or(p);
-                    if f < need {
-                        sp.opts.past = sp.opts.past.max(need);
-                        sp.opts.future = Some(need.min(sp.opts.past));
-                    }
+                    sp = with_order(&sp, o);
                     detail = format!("order {o} (was {n})");
                 }
                 None => {
@@ -855,13 +861,7 @@ impl Catalogue<'_, '_> {
         // is the costly one; nor beside a noise model (whose states are not the plant's)
         if spec.noise == Noise::Pbsid && !spec.signals.has_feedback() {
             let o = n + 1;
-            let mut sp = spec.clone();
-            sp.opts.order = Order::Fixed(o);
-            let need = (o + 1).div_ceil(l);
-            if sp.opts.future.unwrap_or(past) < need {
-                sp.opts.past = sp.opts.past.max(need);
-                sp.opts.future = Some(need.min(sp.opts.past));
-            }
+            let sp = with_order(spec, o);
             self.push_nested(Effect::OrderTooLow, &format!("order {o} (was {n})"), sp);
         }
     }

@@ -8,6 +8,7 @@
 use std::collections::BTreeMap;
 use std::fmt::Write as _;
 
+use lpvid_host::diagnose::catalogue::with_order;
 use lpvid_host::diagnose::effects::{refined_null, significant, versus, Eval};
 use lpvid_host::diagnose::plants::{
     family_case_shaped, family_case_with, FamilyCase, Profile, Shape,
@@ -15,7 +16,6 @@ use lpvid_host::diagnose::plants::{
 use lpvid_host::diagnose::refit::{fit_spec, Noise, Spec};
 use lpvid_host::diagnose::{diagnose, Options};
 use lpvid_host::model::{Factor, FactorFn, ModelFile};
-use lpvid_host::pbsid::Order;
 use lpvid_host::simulate::{simulate, Mode};
 
 /// One diagnosed family plant.
@@ -217,16 +217,10 @@ fn oracle_spec(
     Some((detail, sp, train))
 }
 
-/// The user's structure `sp` at order `o`, as the catalogue's order variants are: enough
-/// block rows for the singular values.
+/// The user's structure `sp` at order `o`, as the catalogue's order variants are
+/// ([`with_order`]: enough block rows for the singular values).
 fn at_order(sp: &mut Spec, o: usize) {
-    sp.opts.order = Order::Fixed(o);
-    let l = sp.signals.outputs.len().max(1);
-    let need = (o + 1).div_ceil(l);
-    if sp.opts.future.unwrap_or(sp.opts.past) < need {
-        sp.opts.past = sp.opts.past.max(need);
-        sp.opts.future = Some(need.min(sp.opts.past));
-    }
+    *sp = with_order(sp, o);
 }
 
 /// The oracle of `case` against the user's `model` ([`Oracle`]), in `mode`; for a clean
