@@ -819,7 +819,8 @@ impl Catalogue<'_, '_> {
         }
     }
 
-    /// order-too-low: order + 1, order + 2, and the past window + 2.
+    /// order-too-low: order + 1, order + 2, and the past window + 2 (PBSID refits), and order + 1
+    /// refined from the model's own structure refined.
     fn order_too_low(&mut self) {
         let ctx = self.ctx;
         let spec = ctx.spec;
