@@ -9,10 +9,9 @@ mod diagnose_support;
 
 use diagnose_support::family::{
     assert_evidence, assert_refined_not_coloured, blocked_finding, diagnose_one, diagnose_one_auto,
-    named_first, number_after, run_one, states,
+    fix_ratio, named_first, number_after, run_one, states,
 };
 use lpvid_host::diagnose::plants::Shape;
-use lpvid_host::simulate::Mode;
 
 /// clean plant 31002 (order 4, affine in p1, past window 7, white output noise 1.9 %): an AR
 /// noise model on top of K explained 10.2 % of the subspace refit's one-step error,
@@ -133,8 +132,7 @@ fn a_dead_time_the_automatic_order_held_in_states_is_given_back() {
     assert!(f.detail.contains("order 4, was 7"), "{}", f.detail);
     assert_evidence(f, "stood for a dead time");
     assert_eq!(states(&out.model), Some(4));
-    let after = out.after_eval.as_ref().expect("a fix applied");
-    let ratio = out.before_eval.mse(Mode::FreeRun) / after.mse(Mode::FreeRun);
+    let ratio = fix_ratio(&out);
     assert!(ratio > 1.7, "{ratio}");
 }
 
@@ -159,8 +157,7 @@ fn a_state_the_subspace_estimate_missed_is_found_refined() {
     );
     assert!(f.explained > 0.7, "{}", f.explained);
     assert_eq!(states(&out.model), Some(4));
-    let after = out.after_eval.as_ref().expect("a fix applied");
-    let ratio = out.before_eval.mse(Mode::FreeRun) / after.mse(Mode::FreeRun);
+    let ratio = fix_ratio(&out);
     println!("error ratio {ratio:.2}");
     assert!(ratio > 7.0, "{ratio}");
 }
@@ -194,8 +191,7 @@ fn a_state_the_automatic_order_missed_is_not_scheduling_noise() {
     assert!(!latent.significant, "{:?}", latent.detail);
     assert!(latent.explained < 0.1, "{}", latent.explained);
     assert_eq!(states(&out.model), Some(3));
-    let after = out.after_eval.as_ref().expect("a fix applied");
-    let ratio = out.before_eval.mse(Mode::FreeRun) / after.mse(Mode::FreeRun);
+    let ratio = fix_ratio(&out);
     println!("error ratio {ratio:.2}");
     assert!(ratio > 2.5, "{ratio}");
 }

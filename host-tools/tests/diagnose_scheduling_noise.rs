@@ -11,9 +11,8 @@
 
 mod diagnose_support;
 
-use diagnose_support::family::{blocked_finding, diagnose_one, number_after, run_one};
+use diagnose_support::family::{blocked_finding, diagnose_one, fix_ratio, number_after, run_one};
 use lpvid_host::diagnose::plants::family_case;
-use lpvid_host::simulate::Mode;
 
 /// scheduling-noise plant 9002 (order 1, random binary input): the oracle (the user's
 /// structure refit on the noise-free p1) reaches 6.80x of the held-out error. Nothing was named
@@ -121,8 +120,7 @@ fn a_slowly_wandering_scheduling_signal_is_recovered_by_its_smoothness() {
     let first = out.report.findings.first().expect("a finding");
     assert_eq!(first.effect, "scheduling-noise", "{}", first.detail);
     assert!(first.detail.contains("moving smoothly"), "{}", first.detail);
-    let after = out.after_eval.as_ref().expect("the fix applied");
-    let ratio = out.before_eval.mse(Mode::FreeRun) / after.mse(Mode::FreeRun);
+    let ratio = fix_ratio(&out);
     assert!(ratio >= 5.0, "{ratio}");
     let est = &out.model.fit["scheduling_estimate"];
     let sd = est["smoothness_prior_std"][0]

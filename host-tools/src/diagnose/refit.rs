@@ -1014,7 +1014,8 @@ pub fn fit_nested(
     }
     // more states than the null: the record names the order (and windows) a later refit of
     // the written model reads back (Spec::from_model), not the null's
-    if model.n() != n_null {
+    let grown = model.n() != n_null;
+    if grown {
         rec.insert("order".into(), json!(model.n()));
         rec.insert(
             "order_rule".into(),
@@ -1026,11 +1027,7 @@ pub fn fit_nested(
             json!(spec.opts.future.unwrap_or(spec.opts.past)),
         );
     }
-    let order = if model.n() == n_null {
-        base.order
-    } else {
-        model.n()
-    };
+    let order = if grown { model.n() } else { base.order };
     Ok(Fitted {
         model: ModelFile {
             kind: ModelKind::Ss(model),
@@ -1765,12 +1762,8 @@ pub(crate) mod tests {
         assert_eq!(fit.model.fit["order_rule"], json!((n + 1).to_string()));
         assert_eq!(fit.model.fit["order"], json!(n + 1));
         let mse = |y: &DMatrix<f64>| (y - &sig.y).norm_squared();
-        assert!(
-            mse(&s1.simulate(&sig, None)) <= mse(&y0) * (1.0 + 1e-9),
-            "{} > {}",
-            mse(&s1.simulate(&sig, None)),
-            mse(&y0)
-        );
+        let (e1, e0) = (mse(&s1.simulate(&sig, None)), mse(&y0));
+        assert!(e1 <= e0 * (1.0 + 1e-9), "{e1} > {e0}");
     }
 
     /// A structure nested in a null with a noise model refines its plant only: the fit is the

@@ -159,14 +159,14 @@ fn oracle_spec(
             format!("sin/cos of the true frequency {om:.4} rad/sample, {h} harmonic(s)")
         }
         "order-too-low" => {
-            at_order(&mut sp, pl.states);
+            sp = with_order(&sp, pl.states);
             format!("order {}", pl.states)
         }
         // a clean plant whose user model (`--order auto`) has another number of states: the
         // user's structure at the plant's, so that a finding about a model a state short is
         // told apart from a false alarm about the plant
         "clean" if user_states != Some(pl.states) => {
-            at_order(&mut sp, pl.states);
+            sp = with_order(&sp, pl.states);
             format!(
                 "order {} (the plant's; the user's model has {})",
                 pl.states,
@@ -217,10 +217,11 @@ fn oracle_spec(
     Some((detail, sp, train))
 }
 
-/// The user's structure `sp` at order `o`, as the catalogue's order variants are
-/// ([`with_order`]: enough block rows for the singular values).
-fn at_order(sp: &mut Spec, o: usize) {
-    *sp = with_order(sp, o);
+/// The held-out free-run error before the fix of a diagnosis over its error after (each model
+/// from its estimated initial state); panics when no fix was applied.
+pub fn fix_ratio(out: &lpvid_host::diagnose::Outcome) -> f64 {
+    let after = out.after_eval.as_ref().expect("a fix applied");
+    out.before_eval.mse(Mode::FreeRun) / after.mse(Mode::FreeRun)
 }
 
 /// The oracle of `case` against the user's `model` ([`Oracle`]), in `mode`; for a clean
