@@ -820,7 +820,7 @@ impl Catalogue<'_, '_> {
     }
 
     /// order-too-low: order + 1, order + 2, and the past window + 2 (PBSID refits), and order + 1
-    /// refined from the model's own structure refined.
+    /// and + 2 refined from the model's own structure refined.
     fn order_too_low(&mut self) {
         let ctx = self.ctx;
         let spec = ctx.spec;
@@ -860,10 +860,12 @@ impl Catalogue<'_, '_> {
         // fifty-second session). Not for a model that feeds its output back: its order was
         // chosen when the channel was fitted (output::fit), and its refinement through the loop
         // is the costly one; nor beside a noise model (whose states are not the plant's)
+        // Two more states as well, as the PBSID variants: a missing resonance is a pair
         if spec.noise == Noise::Pbsid && !spec.signals.has_feedback() {
-            let o = n + 1;
-            let sp = with_order(spec, o);
-            self.push_nested(Effect::OrderTooLow, &format!("order {o} (was {n})"), sp);
+            for o in [n + 1, n + 2] {
+                let sp = with_order(spec, o);
+                self.push_nested(Effect::OrderTooLow, &format!("order {o} (was {n})"), sp);
+            }
         }
     }
 
