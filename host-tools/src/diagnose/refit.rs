@@ -868,7 +868,9 @@ impl Refinement {
 /// is kept before one that is not (then its error may be above an unstable null's): from the padded
 /// start alone the refinement stopped in a local minimum on several family plants (the p1^2
 /// of seed 9003 at 20.7 % where its PBSID estimate explained 87 %; docs, helper h17sc).
-/// A plain input channel replaced by the same column delayed (input-delay) is refined the
+/// With more states than the null (`order-too-low`), a third start fills the added states
+/// with a fit of the null's training residual ([`beside_residual`]), since from the padded
+/// start they cannot move. A plain input channel replaced by the same column delayed (input-delay) is refined the
 /// same way, from the null's model read with the delayed channel and from its own PBSID
 /// estimate: the same coefficients as the null, so no more flexible than it, and not nested
 /// (it may fit the training data worse than the null); channels added after the null's are
