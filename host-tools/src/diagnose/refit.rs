@@ -373,6 +373,17 @@ pub(super) fn constant_column(u: &DMatrix<f64>, j: usize) -> bool {
         .all(|v| (v - first).abs() <= 1e-12 * first.abs().max(1e-300))
 }
 
+/// Every input and output column of `sig` less its mean: a PBSID fit beside constant
+/// channels, which are then fitted given A(mu), C ([`add_constant_channels`]).
+fn centre_columns(sig: &mut Signals) {
+    for m in [&mut sig.u, &mut sig.y] {
+        for j in 0..m.ncols() {
+            let mu = m.column(j).mean();
+            m.column_mut(j).add_scalar_mut(-mu);
+        }
+    }
+}
+
 fn select_columns(m: &DMatrix<f64>, cols: &[usize]) -> DMatrix<f64> {
     DMatrix::from_fn(m.nrows(), cols.len(), |i, j| m[(i, cols[j])])
 }
@@ -459,12 +470,7 @@ fn fit_structure(
         p: sig.p.clone(),
     };
     if centre {
-        for m in [&mut sub.u, &mut sub.y] {
-            for j in 0..m.ncols() {
-                let mu = m.column(j).mean();
-                m.column_mut(j).add_scalar_mut(-mu);
-            }
-        }
+        centre_columns(&mut sub);
     }
     let mut f = pbsid::fit(&sub, &spec.opts)?;
     let mut ss = f.model.clone();
@@ -1087,12 +1093,7 @@ fn beside_residual(
         y: &sig.y - yhat,
         p: sig.p.clone(),
     };
-    for m in [&mut sub.u, &mut sub.y] {
-        for j in 0..m.ncols() {
-            let mu = m.column(j).mean();
-            m.column_mut(j).add_scalar_mut(-mu);
-        }
-    }
+    centre_columns(&mut sub);
     let opts = PbsidOptions {
         order: Order::Fixed(added),
         ..opts.clone()
@@ -1813,6 +1814,17 @@ pub(crate) mod tests {
         assert!(latent.as_written().latent.is_none());
     }
 
+    /// The user's structure of a SISO family plant at its known order, refined by output
+    /// error: the null an `order-too-low` variant is nested in.
+    fn refined_user_structure(case: &crate::diagnose::plants::FamilyCase) -> Spec {
+        let mut null = plain();
+        null.refined = true;
+        let scheduled = case.train.names.iter().any(|c| c == "p1");
+        null.signals = SignalMap::standard(1, 1, usize::from(scheduled));
+        null.opts.order = Order::Fixed(case.planted.order);
+        null
+    }
+
     /// One more state nested in the refined structure (`order-too-low`, catalogue): the
     /// padded start is the null's model again (the same free run), and the fit has the added
     /// state, a training free-run error at most the null's, and a record that names its order
@@ -1821,11 +1833,7 @@ pub(crate) mod tests {
     fn one_more_state_nested_in_the_refined_structure() {
         let case = crate::diagnose::plants::family_case("clean", 7, 600).unwrap();
         let n = case.planted.order;
-        let mut null = plain();
-        null.refined = true;
-        let scheduled = case.train.names.iter().any(|c| c == "p1");
-        null.signals = SignalMap::standard(1, 1, usize::from(scheduled));
-        null.opts.order = Order::Fixed(n);
+        let null = refined_user_structure(&case);
         let mut more = null.clone();
         more.opts.order = Order::Fixed(n + 1);
         more.nested_in = Some(Box::new(null.clone()));
@@ -1862,11 +1870,7 @@ pub(crate) mod tests {
             let case =
                 crate::diagnose::plants::family_case("order-too-low", 244400 + seed, 1000).unwrap();
             let n = case.planted.order;
-            let mut null = plain();
-            null.refined = true;
-            let scheduled = case.train.names.iter().any(|c| c == "p1");
-            null.signals = SignalMap::standard(1, 1, usize::from(scheduled));
-            null.opts.order = Order::Fixed(n);
+            let mut null = refined_user_structure(&case);
             let at = case.pbsid_args.iter().position(|a| a == "--past").unwrap();
             null.opts.past = case.pbsid_args[at + 1].parse().unwrap();
             let base = fit_spec(&null, &case.train, &json!({})).unwrap();
