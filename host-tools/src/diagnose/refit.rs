@@ -876,8 +876,8 @@ impl Refinement {
 /// of seed 9003 at 20.7 % where its PBSID estimate explained 87 %; docs, helper h17sc).
 /// With more states than the null (`order-too-low`), a third start fills the added states
 /// with a fit of the null's training residual ([`beside_residual`]), since from the padded
-/// start they cannot move. A plain input channel replaced by the same column delayed (input-delay) is refined the
-/// same way, from the null's model read with the delayed channel and from its own PBSID
+/// start they cannot move. A plain input channel replaced by the same column delayed
+/// (input-delay) is refined the same way, from the null's model read with the delayed channel and from its own PBSID
 /// estimate: the same coefficients as the null, so no more flexible than it, and not nested
 /// (it may fit the training data worse than the null); channels added after the null's are
 /// started at zero as above.
@@ -959,10 +959,7 @@ pub fn fit_nested(
     // more states: the padded start is a stationary point of the free-run error (an added
     // state with no input and no output has no gradient), so a third start fills the added
     // states with a fit of the null's own training residual ([`beside_residual`])
-    let beside = (start.n() > n_null)
-        .then(|| beside_residual(&start, n_null, &refinement.sig, &spec.opts))
-        .flatten()
-        .map(|s| refine(&s));
+    let beside = beside_residual(&start, n_null, &refinement.sig, &spec.opts).map(|s| refine(&s));
     // the second start: the structure's own PBSID estimate, refined the same way; the lower
     // training error is kept, so the result stays at or below the null's training error
     // (a scheduled output refined as a whole is itself this nested fit: its own start is
@@ -1070,7 +1067,7 @@ pub fn fit_nested(
 /// many states, of the null's free-run training residual from the varying inputs (both
 /// centred): the null in parallel with a model of what it misses, a start from which the
 /// refinement can move the added states (from the padded start alone it cannot: their
-/// gradient is zero there). None when the null diverges or the fit fails.
+/// gradient is zero there). None when no state is added, the null diverges or the fit fails.
 fn beside_residual(
     start: &LpvSs,
     n_null: usize,
