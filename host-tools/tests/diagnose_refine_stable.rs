@@ -86,9 +86,10 @@ fn the_refined_p2_basis_stays_stable_and_is_a_finding() {
 /// output error removes it as well (the delay explains 7.9 % more, p = 1.8e-3), so no effect
 /// is a finding. With `--fix` the refined structure is the model written (measured: held-out
 /// free-run error 8.6x lower, VAF 93.43 -> 99.24 %); before, the model was left as given
-/// with a note naming `lpvid pbsid --refine`.
+/// with a note naming `lpvid pbsid --refine`. Then the model written is diagnosed again and
+/// judged against itself, refit refined.
 #[test]
-fn fix_writes_the_refined_structure_when_no_effect_is_missing() {
+fn fix_writes_the_refined_structure_and_a_later_diagnosis_refits_it_refined() {
     let (model, out) = diagnose_one_auto("input-delay", 240107, 1500, Shape::SISO);
     let r = &out.report;
     assert!(r.applied.is_empty(), "{:?}", r.applied);
@@ -113,22 +114,16 @@ fn fix_writes_the_refined_structure_when_no_effect_is_missing() {
     // the summary says it, once
     let text = lpvid_host::diagnose::report::summary(r, &[]);
     assert_eq!(text.matches("Refined: ").count(), 1, "{text}");
-}
 
-/// The model the refined fix writes, diagnosed again on the same records: its record says it
-/// was refined by output error (`refit::REFINED_KEY`), so its refit is refined too and the
-/// candidates are judged against the structure the user has. Before, the second run refit it
-/// by PBSID alone (held-out VAF 93.43 % against the given 99.24 %, with a note saying so) and
-/// wrote the same refined structure again as a "fix" 1.0x lower.
-#[test]
-fn a_refined_model_is_refit_refined_by_a_later_diagnosis() {
-    let (_, first) = diagnose_one_auto("input-delay", 240107, 1500, Shape::SISO);
-    assert!(first.report.refined.is_some());
-    let refined = first.model;
+    // The model the refined fix wrote, diagnosed again on the same records: its record says
+    // it was refined by output error (`refit::REFINED_KEY`), so its refit is refined too and
+    // the candidates are judged against the structure the user has. Before, the second run
+    // refit it by PBSID alone (held-out VAF 93.43 % against the given 99.24 %, with a note
+    // saying so) and wrote the same refined structure again as a "fix" 1.0x lower. (One test
+    // with the first diagnosis above: it is the same run.)
+    let refined = out.model;
     let spec = Spec::from_model(&refined, &mut vec![]).unwrap();
     assert!(spec.refined, "the record says the structure was refined");
-
-    let case = family_case("input-delay", 240107, 1500).unwrap();
     let second = diagnose_again(&refined, &case);
     let r = &second.report;
     assert!(r.refined.is_none(), "{:?}", r.refined);
