@@ -52,7 +52,8 @@ test-all: shared-data
 # The long tier: the tests marked `#[ignore = "long tier: make test-long"]` (the measured
 # benchmarks that take minutes each, more seeds and plants of the diagnosis' acceptance runs).
 # Run it before merging a change to diagnose, refine or pbsid: CI runs `make test`, whose
-# tier covers every behaviour once in about 10 minutes of tests on a 2-core machine.
+# tier covers every behaviour once in about 10 minutes of tests on a 2-core machine of
+# 2026-11 (about 25 minutes on those of 2026-12-07, three times slower).
 test-long: setup shared-data
 	cargo test --workspace --release -- --ignored
 
