@@ -877,10 +877,10 @@ impl Refinement {
 /// With more states than the null (`order-too-low`), a third start fills the added states
 /// with a fit of the null's training residual ([`beside_residual`]), since from the padded
 /// start they cannot move. A plain input channel replaced by the same column delayed
-/// (input-delay) is refined the same way, from the null's model read with the delayed channel and from its own PBSID
-/// estimate: the same coefficients as the null, so no more flexible than it, and not nested
-/// (it may fit the training data worse than the null); channels added after the null's are
-/// started at zero as above.
+/// (input-delay) is refined the same way, from the null's model read with the delayed
+/// channel and from its own PBSID estimate: the same coefficients as the null, so no more
+/// flexible than it, and not nested (it may fit the training data worse than the null);
+/// channels added after the null's are started at zero as above.
 pub fn fit_nested(
     spec: &Spec,
     null: &Spec,
