@@ -265,6 +265,27 @@ impl<'a> Layout<'a> {
         }
     }
 
+    /// Whether the initial state is redundant on the record `sig`: an input column constant
+    /// and nonzero over it (a constant channel) with its D refined in every scheduling
+    /// block. The state shift x -> x + s then leaves every output unchanged once that
+    /// channel's B^(i) and D^(i) take up A^(i) s (and s itself, mu_0 = 1) and C^(i) s: the
+    /// free run's cost is flat along n directions of (x0, B, D). Along them a descent slides
+    /// as the rounding of its normal equations steers it, and the zero state of the model it
+    /// ends at (where a free run from `X0::Zero` starts) is arbitrary: on the physical tank
+    /// 4024 (sqrt|y1| fed back, a constant channel) held-out error from the zero state 2.2x
+    /// apart for the same training error, from two products J'J equal to rounding.
+    fn start_is_redundant(&self, sig: &Signals) -> bool {
+        self.zero_q.is_empty()
+            && self.template.d.len() >= self.template.c.len()
+            && self.d_cols.iter().any(|&j| {
+                let col = sig.u.column(j);
+                !self.zero_d.contains(&j)
+                    && !col.is_empty()
+                    && col[0] != 0.0
+                    && col.iter().all(|&v| v == col[0])
+            })
+    }
+
     /// The model and initial state of the packed parameters `v`.
     fn unpack(&self, v: &[f64]) -> (LpvSs, DVector<f64>) {
         let (mut m, x0) = unpack(self.template, v, self.d_cols);
@@ -734,6 +755,12 @@ fn descend(
     theta.extend(w0.iter().map(|w| w.abs().max(1e-12).ln()));
     let omegas = |th: &[f64]| -> Vec<f64> { th[n_model..].iter().map(|v| v.exp()).collect() };
     let layout = Layout::new(model, fb, d_cols);
+    // an initial state a constant channel can stand for is held where it starts (its
+    // columns of the Jacobian zero; from the zero state, the usual start, the model's zero
+    // state is then the record's start)
+    let held_start = layout
+        .start_is_redundant(sig)
+        .then(|| n_model - model.n()..n_model);
     let unpack = |th: &[f64]| layout.unpack(&th[..n_model]);
     let cost = |th: &[f64]| -> Option<(f64, Vec<f64>)> {
         let (m, x0) = unpack(th);
@@ -804,7 +831,10 @@ fn descend(
         it += 1;
         // the exact Jacobian of the residual (forward sensitivities, one run); the
         // frequencies' columns by forward differences
-        let jac = exact(&theta, &r).unwrap_or_else(|| jacobian(&theta, &r, &cost));
+        let mut jac = exact(&theta, &r).unwrap_or_else(|| jacobian(&theta, &r, &cost));
+        if let Some(held) = held_start.clone() {
+            jac.columns_mut(held.start, held.len()).fill(0.0);
+        }
         let (jtj, g, diag) = normal_equations(&jac, &r);
         let mut improved = false;
         let mut converged = false;
@@ -1498,6 +1528,102 @@ mod tests {
         assert!(!leans_on_start(&with_mode(0.2), &x0, &sig, &fb));
         // the offset-free record, fitted from the zero state, forgets it too
         assert!(!leans_on_start(&first, &DVector::zeros(1), &sig0, &fb));
+    }
+
+    /// The flat directions [`Layout::start_is_redundant`] names: with a constant channel whose
+    /// D is scheduled as C is, the shift x -> x + s taken up by that channel's B^(i) and
+    /// D^(i) leaves the free run's residual unchanged (to 1e-12 of its size); the descent
+    /// then holds the initial state where it starts. Not redundant without the D column,
+    /// with an input that varies, or with a constant channel at zero.
+    #[test]
+    fn a_constant_channel_stands_for_the_initial_state() {
+        let (plant, mut sig) = scheduled_first_order(0.3, 0.0, 400);
+        let n = 2;
+        let base = LpvSs {
+            a: vec![
+                DMatrix::from_row_slice(2, 2, &[0.6, 0.2, -0.1, 0.5]),
+                DMatrix::from_row_slice(2, 2, &[0.1, 0.0, 0.05, -0.1]),
+            ],
+            b: vec![
+                DMatrix::from_row_slice(2, 2, &[1.0, 0.3, 0.5, -0.2]),
+                DMatrix::from_row_slice(2, 2, &[0.2, 0.1, 0.0, 0.4]),
+            ],
+            k: vec![DMatrix::zeros(2, 1); 2],
+            c: vec![
+                DMatrix::from_row_slice(1, 2, &[1.0, 0.5]),
+                DMatrix::from_row_slice(1, 2, &[0.2, -0.3]),
+            ],
+            d: vec![
+                DMatrix::from_row_slice(1, 2, &[0.0, 0.4]),
+                DMatrix::from_row_slice(1, 2, &[0.0, -0.1]),
+            ],
+        };
+        let level = 2.0;
+        sig.u = DMatrix::from_fn(
+            sig.len(),
+            2,
+            |k, j| {
+                if j == 0 {
+                    sig.u[(k, 0)]
+                } else {
+                    level
+                }
+            },
+        );
+        sig.y = plant.simulate(
+            &Signals {
+                u: sig.u.columns(0, 1).into(),
+                ..sig.clone()
+            },
+            None,
+        );
+        let x0 = DVector::from_vec(vec![0.1, -0.2]);
+        let s = DVector::from_vec(vec![0.7, -1.3]);
+        let mut shifted = base.clone();
+        for i in 0..2 {
+            let mut bc = -(&base.a[i] * &s);
+            if i == 0 {
+                bc += &s;
+            }
+            let b = shifted.b[i].column(1) + bc / level;
+            shifted.b[i].set_column(1, &b);
+            let d = shifted.d[i].column(1) - (&base.c[i] * &s) / level;
+            shifted.d[i].set_column(1, &d);
+        }
+        let fb = Feedback::default();
+        let r0 = residual(&base, &x0, &sig, &fb).unwrap();
+        let r1 = residual(&shifted, &(&x0 + &s), &sig, &fb).unwrap();
+        let size = r0.iter().map(|v| v.abs()).fold(0.0, f64::max);
+        let gap = r0
+            .iter()
+            .zip(&r1)
+            .map(|(a, b)| (a - b).abs())
+            .fold(0.0, f64::max);
+        assert!(gap <= 1e-12 * size.max(1.0), "{gap} of {size}");
+        // named where it holds, and the descent keeps the start
+        let redundant = |u: &DMatrix<f64>, d_cols: &[usize]| {
+            let sig = Signals {
+                u: u.clone(),
+                ..sig.clone()
+            };
+            Layout::new(&base, &fb, d_cols).start_is_redundant(&sig)
+        };
+        assert!(redundant(&sig.u, &[1]));
+        assert!(!redundant(&sig.u, &[]));
+        assert!(!redundant(&sig.u, &[0]));
+        assert!(!redundant(
+            &sig.u.map(|v| if v == level { 0.0 } else { v }),
+            &[1]
+        ));
+        let r = refine_from(&base, &x0, &sig, &fb, &[1], &[], 20);
+        assert!(
+            r.mse_after < r.mse_before,
+            "{} -> {}",
+            r.mse_before,
+            r.mse_after
+        );
+        assert_eq!(r.x0, x0);
+        assert_eq!(r.model.n(), n);
     }
 
     /// Multiple shooting (`shooting_start`) on a pendulum whose record goes over the top (to
