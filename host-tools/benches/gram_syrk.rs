@@ -9,12 +9,17 @@
 //!
 //! L = 16, 30 (the device's extended statistics), 126, 425 (B1, p = 3 primal regression).
 //! Run: `cargo bench -p lpvid-host --bench gram_syrk`.
+//!
+//! `normal_equations`: J'J of a refinement's Jacobian (10^4 residuals, P parameters) by
+//! nalgebra's dense product of the transposed copy (what `refine` computed before, the
+//! comparison) and by [`lpvid_host::linalg::gram_of_columns`] (faer's lower half, mirrored).
 
 use criterion::{black_box, criterion_group, criterion_main, BenchmarkId, Criterion, Throughput};
 use faer::linalg::matmul::triangular::{matmul, BlockStructure};
 use faer::{Accum, Mat, Par};
 use lpvid::{packed_len, Gram};
-use lpvid_host::linalg::{GramBatch, GRAM_BATCH};
+use lpvid_host::linalg::{gram_of_columns, GramBatch, GRAM_BATCH};
+use nalgebra::DMatrix;
 
 fn block(len: usize) -> Vec<f64> {
     (0..GRAM_BATCH * len)
@@ -65,5 +70,26 @@ fn compare(c: &mut Criterion) {
     group.finish();
 }
 
-criterion_group!(gram_syrk, compare);
+fn normal_equations(c: &mut Criterion) {
+    let mut group = c.benchmark_group("normal_equations");
+    group.sample_size(20);
+    let rows = 10_000;
+    for params in [40usize, 112, 200] {
+        let jac = DMatrix::from_fn(rows, params, |i, j| {
+            (((i * 31 + j * 7919) % 1013) as f64 / 1013.0 - 0.5) * 0.1
+        });
+        group.bench_function(BenchmarkId::new("nalgebra J'J", params), |b| {
+            b.iter(|| {
+                let jt = black_box(&jac).transpose();
+                black_box(&jt * &jac)
+            })
+        });
+        group.bench_function(BenchmarkId::new("gram_of_columns", params), |b| {
+            b.iter(|| black_box(gram_of_columns(black_box(&jac))))
+        });
+    }
+    group.finish();
+}
+
+criterion_group!(gram_syrk, compare, normal_equations);
 criterion_main!(gram_syrk);

@@ -200,6 +200,30 @@ impl GramBatch {
     }
 }
 
+/// A'A of a column-major `a` with many more rows than columns (the normal equations' J'J
+/// of the output-error refinement, whose Jacobian has a row per residual): faer's
+/// triangular product of the lower half, mirrored. Half the multiply-adds of the dense
+/// product `a.transpose() * a`, and no transposed copy of `a` (benches/gram_syrk.rs,
+/// `normal_equations`).
+pub fn gram_of_columns(a: &DMatrix<f64>) -> DMatrix<f64> {
+    use faer::linalg::matmul::triangular::{matmul, BlockStructure};
+    let (rows, n) = a.shape();
+    let mut lower = faer::Mat::<f64>::zeros(n, n);
+    let v = faer::MatRef::from_column_major_slice(a.as_slice(), rows, n);
+    matmul(
+        lower.as_mut(),
+        BlockStructure::TriangularLower,
+        faer::Accum::Replace,
+        v.transpose(),
+        BlockStructure::Rectangular,
+        v,
+        BlockStructure::Rectangular,
+        1.0,
+        faer::Par::Seq,
+    );
+    DMatrix::from_fn(n, n, |i, j| lower[(i.max(j), i.min(j))])
+}
+
 /// The core's Gram of `count` vectors of length `len`, each written by `row(k, dst)` into a
 /// batch of [`GRAM_BATCH`] and accumulated by [`GramBatch`].
 pub fn gram_from_rows(
@@ -1083,6 +1107,23 @@ impl ShiftedLdl {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// gram_of_columns is A'A, symmetric, for tall, square, one-column and empty shapes
+    /// (relative to the dense product, to rounding).
+    #[test]
+    fn gram_of_columns_is_the_dense_product() {
+        use rand::{Rng, SeedableRng};
+        let mut rng = rand::rngs::StdRng::seed_from_u64(0x5eed_9a11);
+        for (rows, cols) in [(1000, 37), (130, 130), (50, 1), (7, 0), (0, 5), (3, 9)] {
+            let a = DMatrix::from_fn(rows, cols, |_, _| rng.gen_range(-1.0..1.0));
+            let g = gram_of_columns(&a);
+            let dense = a.transpose() * &a;
+            assert_eq!(g.shape(), (cols, cols));
+            assert_eq!(g, g.transpose());
+            let err = (&g - &dense).amax();
+            assert!(err <= 1e-12 * (1.0 + dense.amax()), "{rows}x{cols}: {err}");
+        }
+    }
 
     #[test]
     fn small_eig_spectral_radius_matches_schur() {

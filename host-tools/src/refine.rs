@@ -590,9 +590,8 @@ where
 /// The normal equations of a Levenberg-Marquardt step on the residual `r` with Jacobian
 /// `jac`: J'J, J'r and the diagonal of J'J (Marquardt's scaling of the damping).
 fn normal_equations(jac: &DMatrix<f64>, r: &[f64]) -> (DMatrix<f64>, DVector<f64>, Vec<f64>) {
-    let jt = jac.transpose();
-    let jtj = &jt * jac;
-    let g = &jt * DVector::from_column_slice(r);
+    let jtj = crate::linalg::gram_of_columns(jac);
+    let g = jac.tr_mul(&DVector::from_column_slice(r));
     let diag = (0..jtj.nrows()).map(|d| jtj[(d, d)] + 1e-12).collect();
     (jtj, g, diag)
 }
