@@ -1,6 +1,7 @@
 //! Output-error refinement of an identified LPV state-space model: Levenberg-Marquardt (with
 //! geodesic acceleration, `accelerated_step`) on the free-run simulation error over
-//! A^(i), B^(i), C, D and the initial state, started from the subspace estimate.
+//! A^(i), B^(i), C, D and the initial state (held where a constant channel can stand for
+//! it, `Layout::start_is_redundant`), started from the subspace estimate.
 //! LPV-PBSID_opt with a finite past window carries a truncation bias
 //! (the phi_{p,k} ~ 0 approximation of section 4.1 of the kernel paper); this removes it
 //! when the data allow (open loop, output noise), as prediction-error methods do after a
@@ -24,7 +25,7 @@ use crate::sensitivity::{free_run_sensitivity, Params};
 pub struct Refined {
     /// The refined model.
     pub model: LpvSs,
-    /// Estimated initial state.
+    /// Estimated initial state (the start given, where a constant channel stands for it).
     pub x0: DVector<f64>,
     /// Mean squared simulation error before.
     pub mse_before: f64,
