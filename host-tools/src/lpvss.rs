@@ -86,6 +86,13 @@ impl Signals {
         let s = self.p.ncols();
         DVector::from_fn(s + 1, |i, _| if i == 0 { 1.0 } else { self.p[(k, i - 1)] })
     }
+    /// Whether input column `j` is constant over the record (to 1e-12 relative): a
+    /// constant channel, or an input that never moved (vacuously true for no sample).
+    pub fn constant_input(&self, j: usize) -> bool {
+        let c = self.u.column(j);
+        c.iter()
+            .all(|v| (v - c[0]).abs() <= 1e-12 * c[0].abs().max(1e-300))
+    }
     /// Samples `range` only.
     pub fn slice(&self, start: usize, len: usize) -> Signals {
         Signals {

@@ -551,12 +551,7 @@ pub fn fit_map_frequencies(
     let sig = map.evaluate(ds)?;
     let fb = map.feedback(ds)?;
     let r = sig.u.ncols();
-    let constant = |j: usize| {
-        let c = sig.u.column(j);
-        c.iter()
-            .all(|v| (v - c[0]).abs() <= 1e-12 * c[0].abs().max(1e-300))
-    };
-    let (cst, var): (Vec<usize>, Vec<usize>) = (0..r).partition(|&j| constant(j));
+    let (cst, var): (Vec<usize>, Vec<usize>) = (0..r).partition(|&j| sig.constant_input(j));
     let fit_err = |e| Error::Fit {
         file: ds.source.clone(),
         source: e,

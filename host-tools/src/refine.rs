@@ -279,11 +279,9 @@ impl<'a> Layout<'a> {
         self.zero_q.is_empty()
             && self.template.d.len() >= self.template.c.len()
             && self.d_cols.iter().any(|&j| {
-                let col = sig.u.column(j);
                 !self.zero_d.contains(&j)
-                    && !col.is_empty()
-                    && col[0] != 0.0
-                    && col.iter().all(|&v| v == col[0])
+                    && sig.constant_input(j)
+                    && sig.u.get((0, j)).is_some_and(|&v| v != 0.0)
             })
     }
 
@@ -832,7 +830,7 @@ fn descend(
         // the exact Jacobian of the residual (forward sensitivities, one run); the
         // frequencies' columns by forward differences
         let mut jac = exact(&theta, &r).unwrap_or_else(|| jacobian(&theta, &r, &cost));
-        if let Some(held) = held_start.clone() {
+        if let Some(held) = &held_start {
             jac.columns_mut(held.start, held.len()).fill(0.0);
         }
         let (jtj, g, diag) = normal_equations(&jac, &r);

@@ -653,8 +653,7 @@ pub fn linearised_start(
         lines.push((j, coef[0], beta));
     }
     // a constant channel of the null, to carry the lines' intercepts
-    let constant =
-        (0..r0).find(|&j| sig.u[(0, j)] != 0.0 && super::refit::constant_column(&sig.u, j));
+    let constant = (0..r0).find(|&j| sig.u[(0, j)] != 0.0 && sig.constant_input(j));
     let (c, d) = (&v.c[0], &v.d[0]);
     let d0 = d.columns(0, r0).into_owned();
     let mut out = crate::lpvss::LpvSs {

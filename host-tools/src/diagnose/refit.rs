@@ -365,14 +365,6 @@ impl Spec {
 
 pub use crate::record::order_rule;
 
-/// Is input column j constant on the training data?
-pub(super) fn constant_column(u: &DMatrix<f64>, j: usize) -> bool {
-    let c = u.column(j);
-    let first = c[0];
-    c.iter()
-        .all(|v| (v - first).abs() <= 1e-12 * first.abs().max(1e-300))
-}
-
 /// Every input and output column of `sig` less its mean: a PBSID fit beside constant
 /// channels, which are then fitted given A(mu), C ([`add_constant_channels`]).
 fn centre_columns(sig: &mut Signals) {
@@ -457,7 +449,7 @@ fn fit_structure(
     let sig = spec.signals.evaluate(train)?;
     let r = sig.u.ncols();
     let (const_idx, var_idx): (Vec<usize>, Vec<usize>) =
-        (0..r).partition(|&j| constant_column(&sig.u, j));
+        (0..r).partition(|&j| sig.constant_input(j));
     if var_idx.is_empty() {
         return Err(RefitError::Unsupported(
             "the model has no input that varies on the training data".into(),
@@ -835,7 +827,7 @@ impl Refinement {
         let fb = spec.signals.feedback(train)?;
         let now = fb.same_sample_inputs();
         let d_cols = (0..sig.u.ncols())
-            .filter(|&j| !now.contains(&j) && (constant_column(&sig.u, j) || spec.opts.feedthrough))
+            .filter(|&j| !now.contains(&j) && (sig.constant_input(j) || spec.opts.feedthrough))
             .collect();
         Ok(Refinement { sig, fb, d_cols })
     }
@@ -1080,7 +1072,7 @@ fn beside_residual(
         return None;
     }
     let var: Vec<usize> = (0..sig.u.ncols())
-        .filter(|&j| !constant_column(&sig.u, j))
+        .filter(|&j| !sig.constant_input(j))
         .collect();
     if var.is_empty() {
         return None;
