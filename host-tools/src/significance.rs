@@ -141,12 +141,20 @@ pub struct Comparison {
     pub ratios: Vec<f64>,
 }
 
-/// [`Comparison`] of finite losses `loss1` (variant) and `loss0` (null) of equal length.
+/// [`Comparison`] of finite losses `loss1` (variant) and `loss0` (null) of equal length, in
+/// [`batch_count`] batches.
 pub fn compare(loss0: &[f64], loss1: &[f64]) -> Comparison {
+    compare_in(loss0, loss1, batch_count(loss0.len()))
+}
+
+/// [`compare`] in `batches` batches: a comparison on part of a record (the second half of
+/// its scored rows, `diagnose::memory::Basis::batches`) keeps the batches of the whole, so
+/// that the floor 2^-B of its test does not rise with the rows it leaves out.
+pub fn compare_in(loss0: &[f64], loss1: &[f64], batches: usize) -> Comparison {
     let d: f64 = loss0.iter().zip(loss1).map(|(a, b)| a - b).sum();
     let m0 = loss0.iter().sum::<f64>();
     let explained = if m0 > 0.0 { d / m0 } else { 0.0 };
-    let ratios = batch_log_ratios(loss0, loss1, batch_count(loss0.len()));
+    let ratios = batch_log_ratios(loss0, loss1, batches);
     // no batch, no test: p = 1 (never significant)
     let (t, p_value) = if ratios.is_empty() {
         (0.0, 1.0)

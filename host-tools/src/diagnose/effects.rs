@@ -54,7 +54,7 @@ use super::residual::{ResidualReport, ALPHA};
 use crate::data::{DataError, Dataset};
 use crate::model::{ModelFile, ModelKind, SignalMap};
 use crate::pbsid::Order;
-use crate::significance::compare;
+use crate::significance::compare_in;
 use crate::simulate::{simulate_signals, Mode};
 
 /// Smallest fraction of the held-out error a finding must explain (see the module docs).
@@ -516,7 +516,7 @@ fn score_parts_inner(
         loss0.extend(l0);
         loss1.extend(l1);
     }
-    let c = compare(&loss0, &loss1);
+    let c = compare_in(&loss0, &loss1, basis.batches(loss0.len()));
     Scored {
         cand,
         fitted: Some(fitted),
@@ -699,8 +699,8 @@ fn nested_unbeaten(scored: &[Scored], big: usize, sig: &impl Fn(&Scored) -> bool
                 && sig(s)
                 && adds_inputs(&b.cand.spec, &s.cand.spec)
                 && s.eval.as_ref().is_some_and(|se| {
-                    let (_, l0, l1) = judged(be, se, mode);
-                    let (explained, p) = versus(&l0, &l1);
+                    let (b, l0, l1) = judged(be, se, mode);
+                    let (explained, p) = versus_in(&l0, &l1, b.batches(l0.len()));
                     !(explained > 0.0 && p < ALPHA)
                 })
         })
@@ -948,10 +948,16 @@ pub fn evidence(
 /// fraction and the p-value of [`compare`]; (-inf, 1) when the variant's loss is not finite
 /// or the records differ.
 pub fn versus(loss0: &[f64], loss1: &[f64]) -> (f64, f64) {
+    versus_in(loss0, loss1, crate::significance::batch_count(loss0.len()))
+}
+
+/// [`versus`] in `batches` batches ([`crate::significance::compare_in`]; the batches of a
+/// comparison [`super::memory::judged`] chose, [`Basis::batches`]).
+pub fn versus_in(loss0: &[f64], loss1: &[f64], batches: usize) -> (f64, f64) {
     if loss1.len() != loss0.len() || loss1.iter().any(|v| !v.is_finite()) {
         return (f64::NEG_INFINITY, 1.0);
     }
-    let c = compare(loss0, loss1);
+    let c = crate::significance::compare_in(loss0, loss1, batches);
     (c.explained, c.p_value)
 }
 
@@ -1072,10 +1078,19 @@ pub fn is_larger_past(c: &Candidate, larger: &Candidate) -> bool {
 /// window, `loss_larger` ([`larger_past`]; same mode): [`versus`], or None when that
 /// structure's free run diverged (a variant needs no evidence against a diverged model).
 pub fn versus_larger(loss_larger: &[f64], loss1: &[f64]) -> Option<(f64, f64)> {
+    versus_larger_in(
+        loss_larger,
+        loss1,
+        crate::significance::batch_count(loss_larger.len()),
+    )
+}
+
+/// [`versus_larger`] in `batches` batches ([`versus_in`]).
+pub fn versus_larger_in(loss_larger: &[f64], loss1: &[f64], batches: usize) -> Option<(f64, f64)> {
     loss_larger
         .iter()
         .all(|v| v.is_finite())
-        .then(|| versus(loss_larger, loss1))
+        .then(|| versus_in(loss_larger, loss1, batches))
 }
 
 #[cfg(test)]

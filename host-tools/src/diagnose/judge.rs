@@ -372,8 +372,8 @@ impl Bench<'_> {
         // also beat the null refit of that structure, under the symmetric memory rule
         // (memory::judged)
         j.vs_user = s.cand.null.as_ref().and_then(|_| {
-            let (_, l0, l1) = memory::judged(s.eval.as_ref()?, self.base_eval, mode);
-            Some(effects::versus(&l0, &l1))
+            let (b, l0, l1) = memory::judged(s.eval.as_ref()?, self.base_eval, mode);
+            Some(effects::versus_in(&l0, &l1, b.batches(l0.len())))
         });
         if !(j.full_data && j.replicated(self, short) && self.beaten(j.vs_user, short)) {
             return;
@@ -401,7 +401,7 @@ impl Bench<'_> {
                 } else {
                     memory::judged(e, self.larger_eval?, mode)
                 };
-                effects::versus_larger(&l0, &l1).map(|v| (v, basis))
+                effects::versus_larger_in(&l0, &l1, basis.batches(l0.len())).map(|v| (v, basis))
             });
         }
         if !self.beaten(j.vs_larger.map(|v| v.0), short) {

@@ -35,8 +35,8 @@
 //! three states, docs/bench-diagnose.md).
 
 use super::effects::{
-    beats_user, held_out_mse, score, score_parts, significant, versus, versus_larger, with_past,
-    Candidate, Effect, Eval, Scored,
+    beats_user, held_out_mse, score, score_parts, significant, versus_in, versus_larger_in,
+    with_past, Candidate, Effect, Eval, Scored,
 };
 use super::memory::{judged, Basis};
 use super::refit::Spec;
@@ -88,12 +88,13 @@ pub fn alternatives(
         }
         // judged against each reference as a finding is (super::memory::judged)
         let against = |r: &Eval| {
-            let (_, l0, l1) = judged(e, r, mode);
-            (l0, l1)
+            let (b, l0, l1) = judged(e, r, mode);
+            let batches = b.batches(l0.len());
+            (l0, l1, batches)
         };
         if s.cand.null.is_some() {
-            let (l0, l1) = against(user);
-            if !beats_user(versus(&l0, &l1), tried, false) {
+            let (l0, l1, batches) = against(user);
+            if !beats_user(versus_in(&l0, &l1, batches), tried, false) {
                 return false;
             }
         }
@@ -102,8 +103,8 @@ pub fn alternatives(
         }
         larger
             .and_then(|l| {
-                let (l0, l1) = against(l);
-                versus_larger(&l0, &l1)
+                let (l0, l1, batches) = against(l);
+                versus_larger_in(&l0, &l1, batches)
             })
             .is_none_or(|v| beats_user(v, tried, false))
     };
