@@ -76,6 +76,9 @@ pub(crate) struct Judgement {
     pub variants: usize,
     /// A short record's (t, p) of the held-out batches pooled with the folds'.
     pub pooled: Option<(f64, f64)>,
+    /// A short record's per-sample losses of the variant on each fold's left-out block
+    /// ([`replicate::Fold::loss`]; empty on a long record).
+    pub fold_loss: Vec<Vec<f64>>,
     /// The full-data test passed.
     pub full_data: bool,
     /// (explained, p) on each training half, or on each fold of a short record.
@@ -224,6 +227,7 @@ fn cross_validate(
         let f = replicate::cross_fold(&replicate::as_fitted(s, b.order), &folds, &nulls, b.fit);
         j.pooled = Some(replicate::pooled_p(&s.ratios, &f));
         j.replication = Some(f.iter().map(|x| (x.explained, x.p_value)).collect());
+        j.fold_loss = f.into_iter().map(|x| x.loss).collect();
     }
 }
 
@@ -496,6 +500,7 @@ impl Judgement {
             index,
             variants,
             pooled: None,
+            fold_loss: Vec::new(),
             full_data: false,
             replication: None,
             replication_basis: None,

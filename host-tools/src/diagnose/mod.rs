@@ -972,7 +972,17 @@ fn diagnose_step(
             (j.finding(&bench, explained, (free, one), base), j.index)
         })
         .collect();
-    rank::rank(&mut findings, &scored, tried, (train, val, fit));
+    let fold_loss: Vec<(usize, &[Vec<f64>])> = judgements
+        .iter()
+        .map(|j| (j.index, j.fold_loss.as_slice()))
+        .collect();
+    rank::rank(
+        &mut findings,
+        &scored,
+        tried,
+        (train, val, fit),
+        rank::FoldLosses(&fold_loss),
+    );
     // the rule that blocked each finding, for the stop line and the summary (human text
     // and JSON say the same)
     for (f, i) in findings.iter_mut().filter(|f| !f.0.significant) {

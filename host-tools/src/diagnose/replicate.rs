@@ -718,6 +718,10 @@ pub struct Fold {
     pub p_value: f64,
     /// The per-batch log ratios (pooled with the held-out ones).
     pub ratios: Vec<f64>,
+    /// The variant's own per-sample losses on the left-out block, in its metric: what two
+    /// variants scored on the same fold are compared head to head with
+    /// ([`super::rank`]'s parsimony rule on a short record).
+    pub loss: Vec<f64>,
 }
 
 /// Rows [lo, hi) of a data set.
@@ -806,6 +810,7 @@ pub fn cross_fold(
         explained: f64::NEG_INFINITY,
         p_value: 1.0,
         ratios: vec![],
+        loss: vec![],
     };
     folds
         .iter()
@@ -819,10 +824,15 @@ pub fn cross_fold(
             if s.error.is_some() || !s.explained.is_finite() {
                 return failed();
             }
+            let loss = s
+                .eval
+                .as_ref()
+                .map_or_else(Vec::new, |e| e.loss(cand.effect.metric()));
             Fold {
                 explained: s.explained,
                 p_value: s.p_value,
                 ratios: s.ratios,
+                loss,
             }
         })
         .collect()
@@ -895,6 +905,7 @@ mod tests {
             explained: 0.5,
             p_value: 0.01,
             ratios,
+            loss: vec![],
         };
         let held = vec![0.4; 6];
         let folds = [fold(vec![0.3; 8]), fold(vec![0.5; 8]), fold(vec![-3.0; 2])];
