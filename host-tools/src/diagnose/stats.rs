@@ -471,6 +471,17 @@ impl Nuisance {
     pub fn width(&self) -> usize {
         self.x.ncols()
     }
+
+    /// The series `v` less its least-squares fit on the regressors (None when its length
+    /// is not the number of rows).
+    pub fn residual(&self, v: &[f64]) -> Option<Vec<f64>> {
+        if v.len() != self.len() {
+            return None;
+        }
+        let xv = nalgebra::DVector::from_column_slice(v);
+        let fit = &self.x * self.xtx.solve(&self.x.tr_mul(&xv));
+        Some(v.iter().zip(fit.iter()).map(|(a, b)| a - b).collect())
+    }
 }
 
 /// Residual sum of squares of the series `x` after least squares on the regressors of
