@@ -1198,6 +1198,18 @@ pub fn periodic_lines(
             .flat_map(|(j, r)| super::residual::spectrum(j + 1, &r).peaks)
             .map(|p| (p.omega, p.ratio))
             .collect();
+        // where both show a line, the frequency is sought around the outputs' (the series
+        // it is fitted on): a spurious line of a white residual within a few bins of the
+        // outputs' line would otherwise centre the search off it (test below, seed 107)
+        for p in peaks.iter_mut() {
+            let nearest = beside_lines
+                .iter()
+                .filter(|line| (p.0 - line.0).abs() < tol)
+                .min_by(|a, b| (p.0 - a.0).abs().total_cmp(&(p.0 - b.0).abs()));
+            if let Some(line) = nearest {
+                p.0 = line.0;
+            }
+        }
         for line in beside_lines {
             if peaks.iter().all(|p| (p.0 - line.0).abs() >= tol) {
                 peaks.push(line);

@@ -913,11 +913,11 @@ pub fn evidence(
                 match s.peaks.first() {
                     Some(p) => ev.push(format!(
                         "validation periodogram of residual {}: line at {:.4} rad/sample (period {:.2} samples), {:.0}x the local level (threshold {:.1})",
-                        s.output, p.omega, p.period, p.ratio, s.threshold
+                        s.output, p.omega, p.period, p.ratio, p.threshold
                     )),
                     None => ev.push(format!(
                         "validation periodogram of residual {}: no significant line (largest {:.1}x the local level at {:.4} rad/sample, threshold {:.1})",
-                        s.output, s.top.ratio, s.top.omega, s.threshold
+                        s.output, s.top.ratio, s.top.omega, s.top.threshold
                     )),
                 }
             }

@@ -492,18 +492,14 @@ pub fn render_all(dir: &Path, res: &Outcome) -> Vec<(PathBuf, String)> {
             "periodogram",
             Kind::Line,
         ));
-        p.series.push(series(
-            pick(&sp.omega),
-            sp.level
-                .iter()
-                .skip(1)
-                .step_by(step)
-                .map(|v| v * sp.threshold)
-                .collect(),
-            "#d62728",
-            "threshold",
-            Kind::Line,
-        ));
+        // no line is tested at the lowest two Fourier bins (trends): no threshold there
+        let (lim_w, lim): (Vec<f64>, Vec<f64>) = pick(&sp.omega)
+            .into_iter()
+            .zip(pick(&sp.limit))
+            .filter(|(_, v)| v.is_finite())
+            .unzip();
+        p.series
+            .push(series(lim_w, lim, "#d62728", "threshold", Kind::Line));
         let peaks_x: Vec<f64> = sp.peaks.iter().map(|q| q.omega).collect();
         let peaks_y: Vec<f64> = sp
             .peaks
