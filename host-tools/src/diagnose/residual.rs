@@ -17,7 +17,7 @@ use nalgebra::DMatrix;
 use serde::Serialize;
 
 use super::stats::{
-    acf, ccf, chi2_sf, dtft_power, mean, normal_quantile, periodogram, refine_peak, t_sf,
+    acf, ccf, chi2_sf, dtft_power, mean, normal_quantile, periodogram, refine_peak, t_sf, Nuisance,
 };
 use crate::data::Dataset;
 use crate::significance::{batch_count, batch_means_t};
@@ -327,37 +327,14 @@ fn line_threshold(m: usize, bins: usize, alpha: f64) -> f64 {
 /// it anyway.
 fn level_without_line(e: &[f64], omega: f64, j: usize, last: usize) -> f64 {
     let n = e.len();
-    let m = mean(e);
-    let (mut scc, mut sss, mut scs, mut sec, mut ses) = (0.0, 0.0, 0.0, 0.0, 0.0);
-    let (mut mc, mut ms) = (0.0, 0.0);
-    let wave: Vec<(f64, f64)> = (0..n)
-        .map(|k| {
-            let (s, c) = (omega * k as f64).sin_cos();
-            mc += c;
-            ms += s;
-            (c, s)
-        })
-        .collect();
-    let (mc, ms) = (mc / n as f64, ms / n as f64);
-    for (k, &(c, s)) in wave.iter().enumerate() {
-        let (c, s, x) = (c - mc, s - ms, e[k] - m);
-        scc += c * c;
-        sss += s * s;
-        scs += c * s;
-        sec += x * c;
-        ses += x * s;
-    }
-    let det = scc * sss - scs * scs;
-    let (a, b) = if det > 1e-12 * scc * sss {
-        ((sec * sss - ses * scs) / det, (ses * scc - sec * scs) / det)
-    } else {
-        (0.0, 0.0)
-    };
-    let r: Vec<f64> = wave
-        .iter()
-        .zip(e)
-        .map(|(&(c, s), x)| x - m - a * (c - mc) - b * (s - ms))
-        .collect();
+    let wave = DMatrix::from_fn(n, 3, |k, c| match c {
+        0 => 1.0,
+        1 => (omega * k as f64).cos(),
+        _ => (omega * k as f64).sin(),
+    });
+    let r = Nuisance::new(wave)
+        .and_then(|line| line.residual(e))
+        .unwrap_or_else(|| e.to_vec());
     let mut v: Vec<f64> = level_window(j, last)
         .map(|i| dtft_power(&r, 2.0 * std::f64::consts::PI * i as f64 / n as f64))
         .collect();
