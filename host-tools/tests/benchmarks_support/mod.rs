@@ -234,5 +234,11 @@ pub fn benches() -> Vec<Bench> {
             train: (0, 7000),
             tests: vec![("smart-rotor-370rpm.csv", 7000, 10000)],
         },
+        Bench {
+            name: "rotor430",
+            file: "smart-rotor-430rpm.csv",
+            train: (0, 7000),
+            tests: vec![("smart-rotor-430rpm.csv", 7000, 10000)],
+        },
     ]
 }
