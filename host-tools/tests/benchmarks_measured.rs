@@ -98,8 +98,10 @@ fn unbalanced_disk() {
 /// periodic disturbance is named first as a harmonic series of the 1P fundamental (frequency
 /// by least squares, phase carried by `t`) and the free-run VAF on the test rows reaches the
 /// goal of issue 14 (97.5 % / 94.5 %; a refit with 1P and 2P at the exact rotor frequency
-/// gave about 98.2 / 95.6). Measured: 1P..4P first (62 % of the held-out error), VAF 98.25 /
-/// 95.84 from x0 = 0, RMSE 0.556 -> 0.338.
+/// gave about 98.2 / 95.6). Measured: 1P..6P refined from the model's structure refined first
+/// (66 % of that structure's held-out error), then an AR model of the free-run residual; VAF
+/// 98.77 / 96.84 from x0 = 0, RMSE 0.556 -> 0.289 (2026-12-07; 1P..4P by PBSID before, 98.25 /
+/// 95.84).
 #[test]
 #[ignore = "long tier: make test-long"]
 fn smart_rotor() {
@@ -107,9 +109,10 @@ fn smart_rotor() {
 }
 
 /// The same run on the 430 rpm record, which no setting of the diagnosis was chosen on
-/// (first run 2026-12-07): the fundamental must be the rotor's 1P at 430 rpm. Measured: 1P..4P
-/// of 45.028215 rad/s first (36.5 %), then two noise models; VAF 97.63 / 95.54 from x0 = 0
-/// (98.17 / 96.52 estimated), RMSE 0.628 -> 0.466 (0.589 -> 0.407 estimated).
+/// (first run 2026-12-07): the fundamental must be the rotor's 1P at 430 rpm. Measured: 1P..6P
+/// of 45.028215 rad/s refined first, then AR innovation states; VAF 98.06 / 95.91 from x0 = 0
+/// (98.68 / 96.96 estimated), RMSE 0.628 -> 0.434 (0.589 -> 0.363 estimated); with the series
+/// fitted by PBSID alone (1P..4P, 36.5 %) 97.63 / 95.54 and 0.466.
 #[test]
 #[ignore = "long tier: make test-long"]
 fn smart_rotor_430rpm() {

@@ -1,6 +1,7 @@
 //! The encompassing test (issue 14; docs/diagnose-measured.md, "which finding comes first"):
 //! when two findings both pass the noise threshold and their structures combine (the two
-//! scheduling effects; order-too-low with output-nonlinearity), the structure with both is
+//! scheduling effects; order-too-low with output-nonlinearity, or with added input channels
+//! when both are refined from the model's structure refined), the structure with both is
 //! fitted and each finding is asked whether it adds to the other, with the batch log-ratio
 //! test of a finding ([`super::effects::versus`]) at ALPHA / 2.
 

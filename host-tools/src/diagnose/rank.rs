@@ -51,7 +51,8 @@ fn rank_by_own_error(findings: &mut [(Finding, usize)], scored: &[Scored]) {
 /// significant finding that the first one does not beat head to head is put first, with
 /// the reason in its evidence (first, so the human summary shows it), unless the
 /// encompassing test ([`encompass::encompass`], for two findings whose structures combine: the
-/// two scheduling effects, and order-too-low with output-nonlinearity)
+/// two scheduling effects, order-too-low with output-nonlinearity, and order-too-low with
+/// added input channels when both are refined from the model's structure refined)
 /// finds that the first one adds to the simpler one and not the reverse (it stays first),
 /// or that both add (the one with the lower own held-out error first). When neither adds,
 /// the simpler goes first, except for the two scheduling effects, whose structures differ by
