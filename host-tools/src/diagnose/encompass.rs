@@ -666,7 +666,8 @@ fn encompass_nested_order(
     })
 }
 
-/// What a scheduling variant adds, in short words (for the encompassing test's evidence).
+/// What a variant adds to the model's structure, in short words (for the encompassing test's
+/// evidence).
 fn describe_addition(c: &Candidate) -> String {
     match c.effect {
         Effect::ScheduledOutput => "the scheduled output equation".to_string(),
