@@ -79,13 +79,21 @@ fn an_own_output_channel_that_only_escapes_a_local_minimum_is_not_a_finding() {
     assert_refined_not_coloured(why, 0.01);
     // sin and cos of a line no periodogram shows (period 5.6 samples) explained 16.4 % of the
     // held-out error, replicated: what adding two channels moved in the refit's estimate of
-    // the rest; the same fit without them does as well (measured: they explain 0.2 %)
+    // the rest; the same fit without them does as well (measured: they explain 0.2 %). Since
+    // 2026-12-07 the series is also refined from the model's structure refined, and that
+    // variant, which escapes the same local minimum, comes first: it is not replicated (each
+    // training half's refit explains -1.0 % and -1.1 %)
     let (periodic, why) = blocked_finding(&out.report, "periodic-disturbance");
     if periodic.explained >= 0.10 {
-        assert!(why.contains("without its sinusoids"), "{why}");
-        let own = number_after(why, "against it the sinusoids explain ");
-        assert!(own < 5.0, "{own}");
+        if why.contains("not replicated") {
+            assert!(periodic.detail.contains("refined"), "{}", periodic.detail);
+        } else {
+            assert!(why.contains("without its sinusoids"), "{why}");
+            let own = number_after(why, "against it the sinusoids explain ");
+            assert!(own < 5.0, "{own}");
+        }
     }
+    assert!(out.report.applied.is_empty(), "{:?}", out.report.applied);
 }
 
 /// 2x1 plant 233002 (order 1, pole 0.52, white inputs, past window 5, output noise 6.4 %
