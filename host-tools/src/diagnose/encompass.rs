@@ -227,21 +227,31 @@ fn encompass_as_fitted(
     };
     let l_s = simpler.eval.as_ref()?.loss(mode);
     let l_r = richer.eval.as_ref()?.loss(mode);
-    let richer_adds = versus(&l_s, &l_us);
-    let simpler_adds = versus(&l_r, &l_ur);
-    let verdict = Encompassed::of(richer_adds, simpler_adds);
-    if verdict == Encompassed::Neither
-        && (failed_estimate(&l_us, &l_s) || failed_estimate(&l_ur, &l_r))
-    {
-        // "neither adds" read from a comprehensive fit that lost to a structure it nests
-        // says nothing of the pair: judge it like with like instead
-        return None;
-    }
     let detail = format!(
         "{} and {}",
         describe_addition(&simpler.cand),
         describe_addition(&richer.cand)
     );
+    judged_by_fits((&l_s, &l_us), (&l_r, &l_ur), detail)
+}
+
+/// The verdict of the encompassing test from held-out losses: `(l_s, l_us)`, the simpler
+/// finding and the comprehensive structure fitted its way (does the richer one add to it?);
+/// `(l_r, l_ur)`, the same for the richer finding. None when neither adds but a comprehensive
+/// fit lost to the finding it nests ([`failed_estimate`]): "neither adds" read from such a
+/// fit says nothing of the pair.
+fn judged_by_fits(
+    (l_s, l_us): (&[f64], &[f64]),
+    (l_r, l_ur): (&[f64], &[f64]),
+    detail: String,
+) -> Option<Encompassing> {
+    let richer_adds = versus(l_s, l_us);
+    let simpler_adds = versus(l_r, l_ur);
+    let verdict = Encompassed::of(richer_adds, simpler_adds);
+    if verdict == Encompassed::Neither && (failed_estimate(l_us, l_s) || failed_estimate(l_ur, l_r))
+    {
+        return None;
+    }
     Some(Encompassing {
         verdict,
         richer_adds,
@@ -641,29 +651,16 @@ fn encompass_nested_order(
         simpler.eval.as_ref()?.loss(mode),
         richer.eval.as_ref()?.loss(mode),
     );
-    let richer_adds = versus(&l_s, &l_u);
-    let simpler_adds = versus(&l_r, &l_u);
-    let verdict = Encompassed::of(richer_adds, simpler_adds);
-    if verdict == Encompassed::Neither
-        && (failed_estimate(&l_u, &l_s) || failed_estimate(&l_u, &l_r))
-    {
-        return None;
-    }
-    Some(Encompassing {
-        verdict,
-        richer_adds,
-        simpler_adds,
-        level: ALPHA / ENCOMPASSING_TESTS as f64,
-        detail: format!(
-            "{} with {}, both refined from the model's own structure refined",
-            describe_addition(&added.cand),
-            ord.cand
-                .detail
-                .split(',')
-                .next()
-                .unwrap_or(&ord.cand.detail)
-        ),
-    })
+    let detail = format!(
+        "{} with {}, both refined from the model's own structure refined",
+        describe_addition(&added.cand),
+        ord.cand
+            .detail
+            .split(',')
+            .next()
+            .unwrap_or(&ord.cand.detail)
+    );
+    judged_by_fits((&l_s, &l_u), (&l_r, &l_u), detail)
 }
 
 /// What a variant adds to the model's structure, in short words (for the encompassing test's
