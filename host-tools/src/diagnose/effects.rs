@@ -369,7 +369,8 @@ pub fn score_own(
     let nested = same.then_some(null_fit);
     let parts = std::slice::from_ref(val);
     let null = Some(std::slice::from_ref(own_null));
-    let mut s = score_parts_inner(cand, train, parts, base_fit, null, true, nested);
+    let mode = cand.effect.metric();
+    let mut s = score_parts_inner(cand, train, parts, base_fit, null, true, nested, mode);
     s.seconds = t0.elapsed().as_secs_f64();
     s
 }
@@ -383,6 +384,7 @@ fn score_inner(
     own: bool,
 ) -> Scored {
     let parts = std::slice::from_ref(val);
+    let mode = cand.effect.metric();
     score_parts_inner(
         cand,
         train,
@@ -391,6 +393,7 @@ fn score_inner(
         null.map(std::slice::from_ref),
         own,
         None,
+        mode,
     )
 }
 
@@ -406,16 +409,33 @@ pub fn score_parts(
     base_fit: &serde_json::Value,
     null: Option<&[Eval]>,
 ) -> Scored {
+    let mode = cand.effect.metric();
+    score_parts_in(cand, train, parts, base_fit, null, mode)
+}
+
+/// [`score_parts`] on the residual of `mode` rather than the effect's own
+/// ([`Effect::metric`]): a replication half whose null structure's free run cannot be had
+/// compares the two refits' one-step predictions ([`super::replicate::Halves`]).
+pub fn score_parts_in(
+    cand: Candidate,
+    train: &Dataset,
+    parts: &[Dataset],
+    base_fit: &serde_json::Value,
+    null: Option<&[Eval]>,
+    mode: Mode,
+) -> Scored {
     let t0 = std::time::Instant::now();
-    let mut s = score_parts_inner(cand, train, parts, base_fit, null, false, None);
+    let mut s = score_parts_inner(cand, train, parts, base_fit, null, false, None, mode);
     s.seconds = t0.elapsed().as_secs_f64();
     s
 }
 
 /// The scoring of [`score`], [`score_own`] and [`score_parts`]: the candidate refit on
 /// `train` (from `nested`, the structure it is nested in already fitted, when given),
-/// evaluated on each part, compared with its null part by part. The [`Scored`] keeps the
-/// evaluation of the first part whose run ran away, else of the first part.
+/// evaluated on each part, compared with its null part by part on the residual of `mode`.
+/// The [`Scored`] keeps the evaluation of the first part whose run ran away, else of the
+/// first part.
+#[allow(clippy::too_many_arguments)]
 fn score_parts_inner(
     cand: Candidate,
     train: &Dataset,
@@ -424,8 +444,8 @@ fn score_parts_inner(
     null: Option<&[Eval]>,
     own: bool,
     nested: Option<&Fitted>,
+    mode: Mode,
 ) -> Scored {
-    let mode = cand.effect.metric();
     let fitted = match super::refit::fit_spec_on(&cand.spec, train, base_fit, nested) {
         Ok(f) => f,
         Err(e) => return Scored::failed(cand, None, None, e.to_string()),
