@@ -659,7 +659,9 @@ pub fn fit_map_frequencies(
                 &nalgebra::DVector::zeros(st.n()),
                 sig.len(),
             );
-            let e = (&sig.y - yh).map(|v| v * v).mean();
+            // the refinement's own cost (its outputs weighed as it weighs them)
+            let e =
+                crate::refine::weighted_mse(&sig.y, &yh, &crate::refine::output_weights(&sig.y));
             !matches!(
                 rf.mse_after.partial_cmp(&e),
                 Some(std::cmp::Ordering::Less | std::cmp::Ordering::Equal)
