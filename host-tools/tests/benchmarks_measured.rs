@@ -101,7 +101,8 @@ fn unbalanced_disk() {
 /// gave about 98.2 / 95.6). Measured: 1P..6P refined from the model's structure refined first
 /// (66 % of that structure's held-out error), then an AR model of the free-run residual; VAF
 /// 98.77 / 96.84 from x0 = 0, RMSE 0.556 -> 0.289 (2026-12-07; 1P..4P by PBSID before, 98.25 /
-/// 95.84).
+/// 95.84); 98.76 / 96.85 and 0.2895 since the refinement weighs each output by its variance
+/// (2026-12-08).
 #[test]
 #[ignore = "long tier: make test-long"]
 fn smart_rotor() {
@@ -111,7 +112,8 @@ fn smart_rotor() {
 /// The same run on the 430 rpm record, which no setting of the diagnosis was chosen on
 /// (first run 2026-12-07): the fundamental must be the rotor's 1P at 430 rpm. Measured: 1P..6P
 /// of 45.028215 rad/s refined first, then AR innovation states; VAF 98.06 / 95.91 from x0 = 0
-/// (98.68 / 96.96 estimated), RMSE 0.628 -> 0.434 (0.589 -> 0.363 estimated); with the series
+/// (98.68 / 96.96 estimated), RMSE 0.628 -> 0.434 (0.589 -> 0.363 estimated; 98.06 / 95.92 and
+/// 0.4337 with each output weighed by its variance in the refinement, 2026-12-08); with the series
 /// fitted by PBSID alone (1P..4P, 36.5 %) 97.63 / 95.54 and 0.466.
 #[test]
 #[ignore = "long tier: make test-long"]
