@@ -344,16 +344,11 @@ fn unpack(template: &LpvSs, v: &[f64], d_cols: &[usize]) -> (LpvSs, DVector<f64>
 /// 90.6 %.
 pub fn output_weights(y: &DMatrix<f64>) -> Vec<f64> {
     let l = y.ncols();
-    let var: Vec<f64> = (0..l)
-        .map(|j| {
-            let c = y.column(j);
-            let n = c.len().max(1) as f64;
-            let mean = c.sum() / n;
-            c.iter().map(|v| (v - mean) * (v - mean)).sum::<f64>() / n
-        })
-        .collect();
+    // the scale the diagnosis' losses divide by (a constant output, floored there, leaves
+    // the plain squared error)
+    let var = crate::metrics::output_variances(y, 0);
     if l < 2
-        || var.iter().any(|v| !(v.is_finite() && *v > 0.0))
+        || var.iter().any(|v| !(v.is_finite() && *v > 1e-300))
         || var.windows(2).all(|p| p[0] == p[1])
     {
         return vec![1.0; l];

@@ -664,9 +664,8 @@ impl<'a> Halves<'a> {
                         Mode::Predictor,
                     );
                     widened.push(format!(
-                        "on the {half} half the null structure's refit ran away from the held-out data at past windows {} and {}, so the half compares the two refits' one-step predictions",
-                        self.spec.opts.past,
-                        self.spec.opts.past + 1
+                        "on the {half} half the null structure's refit ran away from the held-out data at past window {} and no refit one past sample longer replaced it, so the half compares the two refits' one-step predictions",
+                        self.spec.opts.past
                     ));
                     s = p;
                 }
