@@ -1256,16 +1256,21 @@ mod tests {
     use crate::pbsid::{fit, Order, PbsidOptions, Reg};
     use crate::systems;
 
-    /// x+ = (0.5 + a2 p) x + u, y = x (+ noise), p = sin(2 pi k / 100): the records of the
-    /// guard tests.
-    fn scheduled_first_order(a2: f64, noise: f64, n: usize) -> (LpvSs, Signals) {
-        let mut state = 7u64;
-        let mut rnd = || {
+    /// Xorshift draws uniform in [-1, 1) from `seed`: the tests' reproducible signals.
+    fn uniform(seed: u64) -> impl FnMut() -> f64 {
+        let mut state = seed;
+        move || {
             state ^= state << 13;
             state ^= state >> 7;
             state ^= state << 17;
             (state >> 11) as f64 / (1u64 << 52) as f64 - 1.0
-        };
+        }
+    }
+
+    /// x+ = (0.5 + a2 p) x + u, y = x (+ noise), p = sin(2 pi k / 100): the records of the
+    /// guard tests.
+    fn scheduled_first_order(a2: f64, noise: f64, n: usize) -> (LpvSs, Signals) {
+        let mut rnd = uniform(7);
         let m = |a2: f64| LpvSs {
             a: vec![
                 DMatrix::from_element(1, 1, 0.5),
@@ -1361,13 +1366,7 @@ mod tests {
             vec![1.0]
         );
         let n = 1500;
-        let mut state = 11u64;
-        let mut rnd = || {
-            state ^= state << 13;
-            state ^= state >> 7;
-            state ^= state << 17;
-            (state >> 11) as f64 / (1u64 << 52) as f64 - 1.0
-        };
+        let mut rnd = uniform(11);
         let plant = LpvSs {
             a: vec![DMatrix::from_row_slice(2, 2, &[0.9, 0.0, 0.0, 0.3])],
             b: vec![DMatrix::from_row_slice(2, 1, &[0.1, 1.0])],
@@ -1486,14 +1485,7 @@ mod tests {
     fn a_sin_channels_frequency_is_refined_with_the_matrices() {
         use crate::model::{Factor, FactorFn, Loop, OwnFactor};
         let n = 600;
-        let mut state = 1u64;
-        let mut rnd = || {
-            // xorshift, uniform in [-1, 1)
-            state ^= state << 13;
-            state ^= state >> 7;
-            state ^= state << 17;
-            (state >> 11) as f64 / (1u64 << 52) as f64 - 1.0
-        };
+        let mut rnd = uniform(1);
         let u: Vec<f64> = (0..n).map(|_| 3.0 * rnd()).collect();
         let fb_at = |w: f64| Feedback {
             inputs: vec![(
@@ -1557,13 +1549,7 @@ mod tests {
     fn pendulum_over_the_top(n: usize, floor: f64) -> (LpvSs, Signals, Feedback) {
         use crate::model::{Factor, FactorFn, Loop, OwnFactor};
         let (h, w2, c, a) = (0.05, 5.0, 0.9, 5.0);
-        let mut state = 3u64;
-        let mut rnd = || {
-            state ^= state << 13;
-            state ^= state >> 7;
-            state ^= state << 17;
-            (state >> 11) as f64 / (1u64 << 52) as f64 - 1.0
-        };
+        let mut rnd = uniform(3);
         // a low-pass input of unit spread (pole 0.8)
         let mut lp = 0.0;
         let u: Vec<f64> = (0..n)
@@ -1816,13 +1802,7 @@ mod tests {
     fn exact_jacobian_matches_forward_differences() {
         use crate::model::{Factor, FactorFn, Loop, OwnFactor};
         let (big_n, n, r, l) = (120, 3, 4, 2);
-        let mut state = 11u64;
-        let mut rnd = || {
-            state ^= state << 13;
-            state ^= state >> 7;
-            state ^= state << 17;
-            (state >> 11) as f64 / (1u64 << 52) as f64 - 1.0
-        };
+        let mut rnd = uniform(11);
         let mat = |rows: usize, cols: usize, scale: f64, rnd: &mut dyn FnMut() -> f64| {
             DMatrix::from_fn(rows, cols, |_, _| scale * rnd())
         };
